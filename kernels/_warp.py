@@ -1,0 +1,81 @@
+"""Shared Warp plumbing for every kernel family: lazy init, torch <-> Warp views, streams.
+
+Nothing here knows about skeletons or videos. Every torch-facing op goes through these helpers so
+that Warp is initialised once, arrays are zero-copy views with ``requires_grad=False`` (we own the
+adjoint buffers), and launches run on the current torch stream of the inputs' device.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+
+import torch
+import warp as wp
+
+_init_lock = threading.Lock()
+_initialised = False
+
+
+def init() -> None:
+    """Initialise Warp once (quietly); later calls are free."""
+    global _initialised
+    if _initialised:
+        return
+    with _init_lock:
+        if not _initialised:
+            wp.config.quiet = True
+            wp.init()
+            _initialised = True
+
+
+def wp_device(t: torch.Tensor) -> wp.context.Device:
+    """The Warp device that matches a torch tensor's device (``cpu`` or ``cuda:N``)."""
+    init()
+    return wp.device_from_torch(t.device)
+
+
+def to_wp(t: torch.Tensor, dtype=None) -> wp.array:
+    """A zero-copy Warp view of a contiguous, detached tensor (never allocates a gradient)."""
+    init()
+    t = t.detach()
+    if not t.is_contiguous():
+        t = t.contiguous()
+    if dtype is None:
+        return wp.from_torch(t, requires_grad=False)
+    return wp.from_torch(t, dtype=dtype, requires_grad=False)
+
+
+@contextlib.contextmanager
+def stream_of(t: torch.Tensor):
+    """Run Warp launches on the current torch stream of ``t``'s device (no-op on the CPU)."""
+    init()
+    if t.is_cuda:
+        with wp.ScopedStream(wp.stream_from_torch(t.device)):
+            yield
+    else:
+        yield
+
+
+def same_device(name: str, *tensors: torch.Tensor) -> torch.device:
+    """Check every tensor sits on one device and return it; raise ``ValueError`` naming ``name``."""
+    devs = {t.device for t in tensors if t is not None}
+    if len(devs) > 1:
+        raise ValueError(f"{name}(): all inputs must be on one device, got {sorted(map(str, devs))}")
+    return next(iter(devs))
+
+
+def check_shape(name: str, arg: str, t: torch.Tensor, shape: tuple) -> None:
+    """Raise ``ValueError`` unless ``t.shape`` matches ``shape`` (``None`` = any size)."""
+    if not isinstance(t, torch.Tensor):
+        raise TypeError(f"{name}(): {arg} must be a torch.Tensor, got {type(t).__name__}")
+    ok = t.dim() == len(shape) and all(s is None or s == d for s, d in zip(shape, t.shape))
+    if not ok:
+        want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(f"{name}(): {arg} must have shape {want}, got {tuple(t.shape)}")
+
+
+def check_float(name: str, arg: str, t: torch.Tensor) -> None:
+    """Raise ``TypeError`` unless ``t`` is float32 (the kernels' dtype)."""
+    if t.dtype != torch.float32:
+        raise TypeError(f"{name}(): {arg} must be float32, got {t.dtype}")

@@ -1,0 +1,50 @@
+"""Shared fixtures: one DEVICES list (CPU, plus CUDA when Warp and torch both see it), shared data."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("S3O_SHARED_DATA", REPO.parent / "shared" / "data"))
+
+
+def _devices() -> list[str]:
+    devs = ["cpu"]
+    if torch.cuda.is_available():
+        try:
+            import warp as wp
+
+            wp.config.quiet = True
+            wp.init()
+            if wp.get_cuda_device_count() > 0:
+                devs.append("cuda:0")
+        except Exception:  # pragma: no cover - a broken CUDA driver still lets the CPU tests run
+            pass
+    return devs
+
+
+DEVICES = _devices()
+
+
+@pytest.fixture(params=DEVICES)
+def device(request) -> str:
+    """Every op test runs once per device in DEVICES."""
+    return request.param
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """../shared/data (or $S3O_SHARED_DATA); tests that need it skip with a message when absent."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"shared evaluation data not found at {SHARED_DATA} (set S3O_SHARED_DATA)")
+    return SHARED_DATA
+
+
+@pytest.fixture(autouse=True)
+def _seed():
+    torch.manual_seed(0)
+    yield
