@@ -7,5 +7,5 @@ Conventions: OpenCV camera (+x right, +y down, +z forward); intrinsics K are 3x3
 ``(3, 3)`` or one per frame ``(T, 3, 3)``; the centre of pixel (column c, row r) is at (c, r), so an
 image spans [-0.5, W - 0.5] x [-0.5, H - 0.5]. Tensors are float32 on ``cpu`` or ``cuda``; the device
 follows the inputs. Each op has a dense pure-torch twin ``<op>_reference`` in
-``s3o_warp.kernels.reference`` that defines the right answer.
+``s3o_warp.reference`` (same signature) that defines the right answer.
 """
