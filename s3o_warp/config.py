@@ -26,9 +26,261 @@ class DataConfig:
 
 
 @dataclass
+class CoarseConfig:
+    """Phase 1 (paper 3.2): 2D skeleton of the canonical frame, lift to ellipsoids, coarse shape fit."""
+
+    target_vertices: int = 1200
+    """Vertex count of the initial mesh (marching cubes of the union of ellipsoids)."""
+    depth: float = 3.0
+    """Depth (object-frame units) at which the canonical frame's 2D skeleton is lifted."""
+    fov_degrees: float = 45.0
+    """Initial horizontal field of view of the full frame, used to initialise the focal length."""
+    steps: int = 150
+    """Optimisation steps of the coarse shape fit on the canonical frame."""
+    lr: float = 0.01
+    """Adam learning rate of the coarse shape fit (vertex offsets)."""
+    sigma: float = 1.0
+    """Soft-silhouette blur sigma (square crop pixels) during the coarse fit."""
+    w_sil: float = 1.0
+    """Weight of the silhouette loss."""
+    w_part: float = 0.5
+    """Weight of the part-silhouette loss (parts = pixels nearest to each 2D skeleton edge)."""
+    w_sym: float = 0.5
+    """Weight of the symmetry loss (eq. 16)."""
+    w_lap: float = 2.0
+    """Weight of the Laplacian smoothing loss (eq. 17)."""
+
+
+@dataclass
+class MotionConfig:
+    """Phase 2 (paper 3.3-3.4): warm-up with the mesh frozen, then shape, colour, camera and motion."""
+
+    batch_frames: int = 8
+    """Frames per optimisation step."""
+    warmup_steps: int = 200
+    """Steps with the mesh frozen (camera and motion only)."""
+    steps: int = 600
+    """Steps of the joint shape + motion + camera phase after the warm-up."""
+    lr_motion: float = 0.02
+    """Adam learning rate of root and bone rotations/translations."""
+    lr_shape: float = 0.002
+    """Adam learning rate of the canonical vertices."""
+    lr_color: float = 0.02
+    """Adam learning rate of the vertex-colour logits."""
+    lr_bones: float = 0.005
+    """Adam learning rate of the bone Gaussians (centres, orientations, scales)."""
+    lr_camera: float = 0.005
+    """Adam learning rate of the focal length (log) and principal points."""
+    sigma: float = 1.0
+    """Soft-silhouette blur sigma in square crop pixels."""
+    w_sil: float = 1.0
+    """Weight of the silhouette loss (mean squared error of the soft silhouette)."""
+    w_flow: float = 0.02
+    """Weight of the optical-flow loss (confidence-weighted L2 of rendered vs observed flow, crop pixels)."""
+    w_color: float = 0.2
+    """Weight of the colour L1 loss."""
+    w_rigid: float = 1.0
+    """Weight of the dynamic rigidity loss (eq. 1-2, corrected as in DESIGN.md)."""
+    rigidity: str = "dynamic"
+    """Rigidity regulariser: dynamic (S3O), arap (the ablation) or none."""
+    w_lap: float = 1.0
+    """Weight of the Laplacian smoothing loss on the canonical mesh."""
+    w_sym: float = 0.2
+    """Weight of the symmetry loss on the canonical mesh."""
+    w_smooth: float = 0.1
+    """Weight of the temporal smoothness of root and bone motion between consecutive frames."""
+    w_bone_reg: float = 0.01
+    """Weight of the penalty on bone translation magnitude (keeps bones rotating about their centres)."""
+    log_every: int = 10
+    """Write a log.jsonl line every this many steps."""
+
+
+@dataclass
+class OutputConfig:
+    """What the run directory receives."""
+
+    checkpoint_every: int = 200
+    """Write a checkpoint every this many steps (and at every phase boundary)."""
+    keep_checkpoints: int = 2
+    """How many checkpoints to keep."""
+    render_video: bool = True
+    """Write renders/ (overlay video, loss plot)."""
+
+
+@dataclass
 class Config:
     """Root of the configuration tree."""
 
     data: DataConfig = field(default_factory=DataConfig)
+    coarse: CoarseConfig = field(default_factory=CoarseConfig)
+    motion: MotionConfig = field(default_factory=MotionConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
     seed: int = 0
     """Seed for every random choice."""
+    preset: str = "default"
+    """Name of the preset applied on top of the defaults."""
+
+
+# ---------------------------------------------------------------------------------------------------
+# Presets, TOML round trip and overrides. Precedence: defaults < preset < --config TOML < flags.
+# ---------------------------------------------------------------------------------------------------
+
+PRESETS: dict[str, tuple[str, dict]] = {
+    "default": ("The defaults: a good fit on the CPU in minutes at 128 px crops.", {"data.crop_size": 128}),
+    "fast": (
+        "A quick look: 96 px crops, fewer steps.",
+        {"data.crop_size": 96, "coarse.steps": 80, "motion.warmup_steps": 100, "motion.steps": 300},
+    ),
+    "quality": (
+        "Slower and finer: 256 px crops, more vertices and steps.",
+        {"data.crop_size": 256, "coarse.target_vertices": 2500, "motion.warmup_steps": 400, "motion.steps": 2000},
+    ),
+    "smoke": (
+        "A seconds-long smoke run for tests: 48 px crops, a few steps.",
+        {
+            "data.crop_size": 48,
+            "coarse.target_vertices": 300,
+            "coarse.steps": 10,
+            "motion.warmup_steps": 5,
+            "motion.steps": 10,
+            "motion.batch_frames": 4,
+        },
+    ),
+}
+
+
+def _is_dataclass_field(obj, name: str) -> bool:
+    import dataclasses
+
+    return dataclasses.is_dataclass(obj) and name in {f.name for f in dataclasses.fields(obj)}
+
+
+def to_dict(cfg) -> dict:
+    """Plain nested dict of every resolved value (for ``config.toml``); None values are dropped."""
+    import dataclasses
+
+    out = {}
+    for f in dataclasses.fields(cfg):
+        v = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(v):
+            out[f.name] = to_dict(v)
+        elif v is not None:
+            out[f.name] = v
+    return out
+
+
+def _coerce(key: str, current, value, annotation: str):
+    """Convert ``value`` to the type of the field ``key`` or raise ConfigError naming the key."""
+    from s3o_warp.errors import ConfigError
+
+    ann = str(annotation)
+    want_none_ok = "None" in ann
+    if value is None or (isinstance(value, str) and value.lower() == "none" and want_none_ok):
+        if want_none_ok:
+            return None
+        raise ConfigError(f"config key '{key}' cannot be none; give a value like {current!r}")
+    base = ann.replace("| None", "").replace("None |", "").strip()
+    try:
+        if base == "bool":
+            if isinstance(value, bool):
+                return value
+            if isinstance(value, str) and value.lower() in ("true", "1", "yes", "false", "0", "no"):
+                return value.lower() in ("true", "1", "yes")
+            raise ValueError
+        if base == "int":
+            if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
+                raise ValueError
+            return int(value)
+        if base == "float":
+            if isinstance(value, bool):
+                raise ValueError
+            return float(value)
+        if base == "str":
+            if not isinstance(value, str):
+                raise ValueError
+            return value
+    except (TypeError, ValueError):
+        raise ConfigError(
+            f"config key '{key}' must be {base}, got {value!r} ({type(value).__name__}); e.g. {key}={current!r}"
+        ) from None
+    return value
+
+
+def set_value(cfg, key: str, value) -> None:
+    """Set a dotted key such as ``motion.steps``; unknown keys and wrong types raise ConfigError."""
+    import dataclasses
+
+    from s3o_warp.errors import ConfigError
+
+    parts = key.split(".")
+    obj = cfg
+    for p in parts[:-1]:
+        if not _is_dataclass_field(obj, p) or not dataclasses.is_dataclass(getattr(obj, p)):
+            raise ConfigError(f"unknown config key '{key}' (no section '{p}'); see config.toml of a run for valid keys")
+        obj = getattr(obj, p)
+    name = parts[-1]
+    if not _is_dataclass_field(obj, name) or dataclasses.is_dataclass(getattr(obj, name)):
+        raise ConfigError(f"unknown config key '{key}'; see config.toml of a run for valid keys")
+    ann = {f.name: f.type for f in dataclasses.fields(obj)}[name]
+    setattr(obj, name, _coerce(key, getattr(obj, name), value, ann))
+
+
+def apply_dict(cfg, d: dict, prefix: str = "") -> None:
+    """Apply a nested dict (from TOML) onto ``cfg``; unknown keys raise ConfigError naming them."""
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            apply_dict(cfg, v, key + ".")
+        else:
+            set_value(cfg, key, v)
+
+
+def load_toml(path) -> dict:
+    """Read a TOML file into a dict; a syntax error raises ConfigError naming the file."""
+    import tomllib
+    from pathlib import Path
+
+    from s3o_warp.errors import ConfigError
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file {path} does not exist; pass an existing TOML file to --config")
+    try:
+        return tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"config file {path} is not valid TOML ({e}); fix the line it names") from None
+
+
+def make_config(preset: str = "default", toml_path=None, overrides: list[str] | None = None, seed: int | None = None) -> Config:
+    """Defaults < preset < TOML file < ``key=value`` overrides (< an explicit seed)."""
+    from s3o_warp.errors import ConfigError
+
+    cfg = Config()
+    if preset not in PRESETS:
+        raise ConfigError(f"unknown preset '{preset}'; choose one of {', '.join(PRESETS)}")
+    for k, v in PRESETS[preset][1].items():
+        set_value(cfg, k, v)
+    cfg.preset = preset
+    if toml_path is not None:
+        apply_dict(cfg, load_toml(toml_path))
+    for item in overrides or []:
+        if "=" not in item:
+            raise ConfigError(f"override '{item}' must look like section.key=value, e.g. motion.steps=300")
+        k, v = item.split("=", 1)
+        set_value(cfg, k.strip(), v.strip())
+    if seed is not None:
+        cfg.seed = int(seed)
+    return cfg
+
+
+def save_toml(cfg, path) -> None:
+    """Write every resolved setting to ``path`` atomically (temp name + rename)."""
+    import os
+    from pathlib import Path
+
+    import tomli_w
+
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(tomli_w.dumps(to_dict(cfg)).encode())
+    os.replace(tmp, path)

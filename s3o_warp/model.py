@@ -1,0 +1,142 @@
+"""The S3O parametric model (paper 3.1, 3.3): canonical mesh, Gaussian bones, per-frame motion, camera.
+
+Notation (paper Table 4): ``M_c`` canonical mesh (verts X^0, faces, colours); bones B (centre C_b,
+orientation V_b, log-scales of the precision Lambda_b, length); per frame t the root transform T_0^t
+(object -> camera) and bone transforms T_b^t, each bone rotating about its own centre; intrinsics with
+one focal length shared over the video (full-frame pixels) and a principal point per frame in the crop.
+
+Posed vertices (eq. 3): ``X^t = T_0^t (sum_b W[n,b] T_b^t) X^0`` through the Warp skinning ops.
+Rotations are axis-angle vectors (never Euler angles); the root rotation is a learnable axis-angle
+delta on top of a fixed per-frame base rotation, so camera hypotheses can be swapped in cleanly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from s3o_warp.geometry import axis_angle_to_matrix, quat_to_matrix
+
+
+@dataclass
+class ModelInit:
+    """Everything needed to build a model (numpy or torch, float32)."""
+
+    verts: torch.Tensor  # (N, 3) canonical vertices, object frame
+    faces: torch.Tensor  # (F, 3) int64
+    colors: torch.Tensor  # (N, 3) in [0, 1]
+    centers: torch.Tensor  # (B, 3) Gaussian centres C_b
+    rotations: torch.Tensor  # (B, 3, 3) orientation V_b (rows = ellipsoid axes)
+    log_scales: torch.Tensor  # (B, 3) log of the precision's diagonal Lambda_b
+    root_R: torch.Tensor  # (T, 3, 3) initial object -> camera rotation per frame
+    root_t: torch.Tensor  # (T, 3) initial object -> camera translation per frame
+    focal: float  # focal length in full-frame pixels (shared)
+    crop_scale: torch.Tensor  # (T,) crop pixels per full-frame pixel
+    crop_size: int  # S, the crop's side in pixels
+    crop_to_frame: torch.Tensor  # (T, 3, 3) crop pixel -> full-frame pixel
+
+
+def quat_from_matrix_wxyz(R: torch.Tensor) -> torch.Tensor:
+    from s3o_warp.geometry import matrix_to_quat
+
+    return matrix_to_quat(R)
+
+
+class S3OModel(nn.Module):
+    """Learnable canonical shape, skeleton Gaussians, per-frame root/bone motion and intrinsics."""
+
+    def __init__(self, init: ModelInit):
+        super().__init__()
+        f32 = dict(dtype=torch.float32)
+        T = init.root_R.shape[0]
+        B = init.centers.shape[0]
+        self.verts = nn.Parameter(torch.as_tensor(init.verts, **f32).clone())
+        c = torch.as_tensor(init.colors, **f32).clamp(1e-3, 1 - 1e-3)
+        self.color_logits = nn.Parameter(torch.log(c / (1 - c)))
+        self.register_buffer("faces", torch.as_tensor(init.faces, dtype=torch.int64).clone())
+        self.bone_centers = nn.Parameter(torch.as_tensor(init.centers, **f32).clone())
+        self.bone_quat = nn.Parameter(quat_from_matrix_wxyz(torch.as_tensor(init.rotations, **f32)).clone())
+        self.bone_log_scales = nn.Parameter(torch.as_tensor(init.log_scales, **f32).clone())
+        self.register_buffer("root_R0", torch.as_tensor(init.root_R, **f32).clone())
+        self.root_aa = nn.Parameter(torch.zeros(T, 3, **f32))
+        self.root_t = nn.Parameter(torch.as_tensor(init.root_t, **f32).clone())
+        self.bone_aa = nn.Parameter(torch.zeros(T, B, 3, **f32))
+        self.bone_t = nn.Parameter(torch.zeros(T, B, 3, **f32))
+        self.log_focal = nn.Parameter(torch.tensor(float(torch.log(torch.tensor(init.focal))), **f32))
+        S = float(init.crop_size)
+        self.pp = nn.Parameter(torch.full((T, 2), (S - 1) / 2, **f32))
+        self.register_buffer("crop_scale", torch.as_tensor(init.crop_scale, **f32).clone())
+        self.register_buffer("crop_to_frame", torch.as_tensor(init.crop_to_frame, **f32).clone())
+        self.crop_size = int(init.crop_size)
+
+    # -- sizes -------------------------------------------------------------------------------------
+    @property
+    def num_frames(self) -> int:
+        return self.root_t.shape[0]
+
+    @property
+    def num_bones(self) -> int:
+        return self.bone_centers.shape[0]
+
+    # -- skeleton ----------------------------------------------------------------------------------
+    def precisions(self) -> torch.Tensor:
+        """Q_b = V_b^T diag(exp s_b) V_b, ``(B, 3, 3)``."""
+        V = quat_to_matrix(self.bone_quat)
+        return V.transpose(-1, -2) @ torch.diag_embed(torch.exp(self.bone_log_scales)) @ V
+
+    def skinning(self, detach_verts: bool = True) -> torch.Tensor:
+        """Skinning weights W ``(N, B)`` of the canonical vertices (vertices detached, as in LASR)."""
+        from s3o_warp.kernels.skinning import skinning_weights
+
+        v = self.verts.detach() if detach_verts else self.verts
+        return skinning_weights(v, self.bone_centers, self.precisions())
+
+    def colors(self) -> torch.Tensor:
+        return torch.sigmoid(self.color_logits)
+
+    # -- motion ------------------------------------------------------------------------------------
+    def root_rt(self, frames: torch.Tensor) -> torch.Tensor:
+        """T_0^t as ``(t, 3, 4)`` object -> camera."""
+        R = axis_angle_to_matrix(self.root_aa[frames]) @ self.root_R0[frames]
+        return torch.cat([R, self.root_t[frames, :, None]], -1)
+
+    def bone_rt(self, frames: torch.Tensor) -> torch.Tensor:
+        """T_b^t as ``(t, B, 3, 4)``: rotation about the bone's own centre plus a translation."""
+        R = axis_angle_to_matrix(self.bone_aa[frames])
+        c = self.bone_centers[None, :, :, None]
+        t = c[..., 0] + self.bone_t[frames] - (R @ c)[..., 0]
+        return torch.cat([R, t[..., None]], -1)
+
+    def intrinsics_crop(self, frames: torch.Tensor) -> torch.Tensor:
+        """K in crop pixels ``(t, 3, 3)``: focal = shared full-frame focal x the frame's crop scale."""
+        f = torch.exp(self.log_focal) * self.crop_scale[frames]
+        K = torch.zeros(len(frames), 3, 3, dtype=f.dtype, device=f.device)
+        K[:, 0, 0] = f
+        K[:, 1, 1] = f
+        K[:, 0, 2] = self.pp[frames, 0]
+        K[:, 1, 2] = self.pp[frames, 1]
+        K[:, 2, 2] = 1
+        return K
+
+    def intrinsics_frame(self, frames: torch.Tensor) -> torch.Tensor:
+        """K in full-frame pixels ``(t, 3, 3)`` = crop_to_frame @ K_crop."""
+        return self.crop_to_frame[frames] @ self.intrinsics_crop(frames)
+
+    def forward(self, frames: torch.Tensor, weights: torch.Tensor | None = None, verts: torch.Tensor | None = None):
+        """Posed camera-space vertices ``(t, N, 3)`` of the given frame indices (eq. 3)."""
+        from s3o_warp.kernels.skinning import blend_skinning
+
+        W = self.skinning() if weights is None else weights
+        v = self.verts if verts is None else verts
+        return blend_skinning(v, W, self.bone_rt(frames), self.root_rt(frames))
+
+    def posed_object(self, frames: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
+        """Articulated vertices in the object frame (before the root), ``(t, N, 3)``."""
+        from s3o_warp.kernels.skinning import blend_skinning
+
+        W = self.skinning() if weights is None else weights
+        eye = torch.zeros(len(frames), 3, 4, dtype=self.verts.dtype, device=self.verts.device)
+        eye[:, :, :3] = torch.eye(3, device=self.verts.device)
+        return blend_skinning(self.verts, W, self.bone_rt(frames), eye)
