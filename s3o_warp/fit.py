@@ -1,0 +1,439 @@
+"""The fit, end to end (paper Algorithm 1): coarse phase, warm-up, shape + motion phase, outputs.
+
+``fit(sequence_dir, out_dir, cfg, device)`` reads the sequence, computes (or loads cached) flow, builds
+the coarse model from the canonical frame's 2D skeleton (phase 1), then optimises camera and motion
+with the mesh frozen (warm-up) and shape, colour, camera and motion together (phase 2, E-step), and
+writes the run directory (DESIGN.md "Run directory"). Checkpoints are written atomically at phase
+boundaries and every ``output.checkpoint_every`` steps; ``resume=True`` continues from the last one.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from s3o_warp import losses as L
+from s3o_warp.config import Config, save_toml, to_dict
+from s3o_warp.errors import InputError
+from s3o_warp.model import ModelInit, S3OModel
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_VERSION = 1
+
+
+# ---------------------------------------------------------------------------------------------------
+# Data on the device
+# ---------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class FitData:
+    """Crops of the whole sequence on the fit's device (S = crop side, T frames)."""
+
+    name: str
+    frame_names: list
+    frame_size: tuple  # (H, W) full frame
+    fps: float
+    images: torch.Tensor  # (T,S,S,3) float in [0,1]
+    masks: torch.Tensor  # (T,S,S) float {0,1}
+    crop_to_frame: torch.Tensor  # (T,3,3)
+    crop_scale: torch.Tensor  # (T,) crop pixels per frame pixel
+    flow_fwd: torch.Tensor  # (T-1,S,S,2) crop-t pixels
+    conf_fwd: torch.Tensor  # (T-1,S,S) in [0,1]
+    sequence_dir: Path
+
+    @property
+    def num_frames(self) -> int:
+        return self.images.shape[0]
+
+    @property
+    def crop_size(self) -> int:
+        return self.images.shape[1]
+
+
+def prepare_data(sequence_dir: Path, cfg: Config, run_dir: Path, device: torch.device) -> FitData:
+    """Open the sequence, crop every frame and compute (or load) the forward flow and its confidence."""
+    from s3o_warp import video
+
+    seq = video.open_sequence(sequence_dir, cfg.data)
+    crops = video.crop_sequence(seq, cfg.data)
+    flow = video.compute_flow(seq, crops, run_dir / "cache", cfg.data)
+    T = seq.num_frames
+    imgs = np.stack([c.image for c in crops]).astype(np.float32) / 255.0
+    masks = np.stack([c.mask for c in crops]).astype(np.float32)
+    c2f = np.stack([c.crop_to_frame for c in crops]).astype(np.float32)
+    fwd = np.stack([flow.forward(t)[0] for t in range(T - 1)]).astype(np.float32)
+    conf = np.stack([flow.forward(t)[1] for t in range(T - 1)]).astype(np.float32)
+    dev = dict(device=device)
+    return FitData(
+        name=seq.name,
+        frame_names=list(seq.frame_names),
+        frame_size=tuple(seq.frame_size),
+        fps=float(seq.fps),
+        images=torch.from_numpy(imgs).to(**dev),
+        masks=torch.from_numpy(masks).to(**dev),
+        crop_to_frame=torch.from_numpy(c2f).to(**dev),
+        crop_scale=torch.from_numpy(1.0 / c2f[:, 0, 0]).to(**dev),
+        flow_fwd=torch.from_numpy(fwd).to(**dev),
+        conf_fwd=torch.from_numpy(conf).to(**dev),
+        sequence_dir=Path(sequence_dir),
+    )
+
+
+# ---------------------------------------------------------------------------------------------------
+# Phase 1: coarse model
+# ---------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class CoarseResult:
+    init: ModelInit
+    canonical: int
+    sym_plane: tuple  # (normal (3,), offset)
+    parents: np.ndarray  # (B,) kinematic tree of the initial bones (-1 root)
+    part_masks: torch.Tensor  # (P,S,S) of the canonical frame
+    face_parts: torch.Tensor  # (F,) part index of each face
+
+
+def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
+    """Paper 3.2: canonical frame, 2D skeleton, ellipsoid lift, union mesh and bones (no fitting yet)."""
+    from s3o_warp import coarse
+
+    masks = data.masks.cpu().numpy() > 0.5
+    c, _ratios = coarse.canonical_frame(list(masks))
+    skel = coarse.skeleton_2d(masks[c])
+    S = data.crop_size
+    H, W = data.frame_size
+    f_full = 0.5 * W / math.tan(math.radians(cfg.coarse.fov_degrees) / 2)
+    f_crop = f_full * float(data.crop_scale[c])
+    Kc = np.array([[f_crop, 0, (S - 1) / 2], [0, f_crop, (S - 1) / 2], [0, 0, 1]], dtype=np.float64)
+    lifted = coarse.lift_to_3d(skel, Kc, cfg.coarse.depth)
+    verts, faces = coarse.ellipsoid_union_mesh(lifted, target_vertices=cfg.coarse.target_vertices)
+    bones = coarse.init_bones(lifted)
+    parts = coarse.part_masks(masks[c], skel)
+    T = data.num_frames
+    root = np.asarray(lifted.root_transform, dtype=np.float64)
+    # face -> part: the part (2D edge) of its nearest bone centre
+    vt = torch.as_tensor(verts, dtype=torch.float32)
+    d = torch.cdist(vt, torch.as_tensor(bones.centers, dtype=torch.float32))
+    vpart = d.argmin(1)
+    ft = torch.as_tensor(faces, dtype=torch.int64)
+    fpart = torch.mode(vpart[ft], dim=1).values
+    init = ModelInit(
+        verts=vt,
+        faces=ft,
+        colors=torch.full((len(verts), 3), 0.5),
+        centers=torch.as_tensor(bones.centers, dtype=torch.float32),
+        rotations=torch.as_tensor(bones.rotations, dtype=torch.float32),
+        log_scales=torch.as_tensor(np.log(bones.scales), dtype=torch.float32),
+        root_R=torch.as_tensor(root[:3, :3], dtype=torch.float32).expand(T, 3, 3).clone(),
+        root_t=torch.as_tensor(root[:3, 3], dtype=torch.float32).expand(T, 3).clone(),
+        focal=float(f_full),
+        crop_scale=data.crop_scale.cpu(),
+        crop_size=S,
+        crop_to_frame=data.crop_to_frame.cpu(),
+    )
+    return CoarseResult(
+        init=init,
+        canonical=int(c),
+        sym_plane=(np.asarray(lifted.sym_plane[0], dtype=np.float32), float(lifted.sym_plane[1])),
+        parents=np.asarray(bones.parents),
+        part_masks=torch.as_tensor(parts, dtype=torch.float32),
+        face_parts=fpart,
+    )
+
+
+# ---------------------------------------------------------------------------------------------------
+# Optimisation
+# ---------------------------------------------------------------------------------------------------
+
+PHASES = ("coarse", "warmup", "joint")
+
+
+def _atomic_save(obj, path: Path) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+class Fitter:
+    """Runs the phases with one Adam optimiser per phase, logging and atomic checkpoints."""
+
+    def __init__(self, data: FitData, coarse_res: CoarseResult, cfg: Config, run_dir: Path, device):
+        from s3o_warp.kernels.regularisers import mesh_edges
+
+        self.data, self.cfg, self.run_dir, self.device = data, cfg, Path(run_dir), device
+        self.coarse = coarse_res
+        self.model = S3OModel(coarse_res.init).to(device)
+        self.edges = mesh_edges(self.model.faces).to(device)
+        self.sym_plane = (torch.as_tensor(coarse_res.sym_plane[0], device=device), coarse_res.sym_plane[1])
+        self.gen = torch.Generator().manual_seed(cfg.seed)
+        self.phase = PHASES[0]
+        self.step = 0  # step within the phase
+        self.log_file = self.run_dir / "log.jsonl"
+        self.t0 = time.perf_counter()
+        self.history: list[dict] = []
+        self.opt = self._make_optimizer()
+
+    # -- optimiser per phase ------------------------------------------------------------------------
+    def _make_optimizer(self) -> torch.optim.Optimizer:
+        m, mc, cc = self.model, self.cfg.motion, self.cfg.coarse
+        if self.phase == "coarse":
+            groups = [{"params": [m.verts], "lr": cc.lr, "name": "shape"}]
+        elif self.phase == "warmup":
+            groups = [
+                {"params": [m.root_aa, m.root_t, m.bone_aa, m.bone_t], "lr": mc.lr_motion, "name": "motion"},
+                {"params": [m.log_focal, m.pp], "lr": mc.lr_camera, "name": "camera"},
+            ]
+        else:
+            groups = [
+                {"params": [m.root_aa, m.root_t, m.bone_aa, m.bone_t], "lr": mc.lr_motion, "name": "motion"},
+                {"params": [m.log_focal, m.pp], "lr": mc.lr_camera, "name": "camera"},
+                {"params": [m.verts], "lr": mc.lr_shape, "name": "shape"},
+                {"params": [m.color_logits], "lr": mc.lr_color, "name": "color"},
+                {"params": [m.bone_centers, m.bone_quat, m.bone_log_scales], "lr": mc.lr_bones, "name": "bones"},
+            ]
+        return torch.optim.Adam(groups)
+
+    def phase_steps(self, phase: str) -> int:
+        return {"coarse": self.cfg.coarse.steps, "warmup": self.cfg.motion.warmup_steps, "joint": self.cfg.motion.steps}[phase]
+
+    # -- losses -------------------------------------------------------------------------------------
+    def coarse_losses(self) -> dict:
+        from s3o_warp.kernels.raster import soft_silhouette
+        from s3o_warp.kernels.regularisers import laplacian_loss, symmetry_loss
+
+        m, cc, d = self.model, self.cfg.coarse, self.data
+        c = self.coarse.canonical
+        fr = torch.tensor([c], device=self.device)
+        verts = m(fr)
+        K = m.intrinsics_crop(fr)
+        S = d.crop_size
+        sil = soft_silhouette(verts, m.faces, K, (S, S), sigma=cc.sigma)
+        terms = {"sil": (cc.w_sil, L.silhouette_loss(sil, d.masks[fr]))}
+        parts = self.coarse.part_masks.to(self.device)
+        fp = self.coarse.face_parts.to(self.device)
+        part_terms = []
+        for p in range(parts.shape[0]):
+            sel = m.faces[fp == p]
+            if len(sel) == 0:
+                continue
+            ps = soft_silhouette(verts, sel, K, (S, S), sigma=cc.sigma)
+            part_terms.append(L.silhouette_loss(ps, parts[p][None]))
+        if part_terms:
+            terms["part"] = (cc.w_part, torch.stack(part_terms).mean())
+        terms["sym"] = (cc.w_sym, symmetry_loss(m.verts, self.sym_plane))
+        terms["lap"] = (cc.w_lap, laplacian_loss(m.verts, m.faces))
+        return terms, sil, d.masks[fr]
+
+    def window(self) -> torch.Tensor:
+        T = self.data.num_frames
+        n = min(self.cfg.motion.batch_frames, T)
+        start = int(torch.randint(0, T - n + 1, (1,), generator=self.gen))
+        return torch.arange(start, start + n, device=self.device)
+
+    def motion_losses(self, frames: torch.Tensor) -> dict:
+        from s3o_warp.kernels.raster import interpolate, rasterize, soft_silhouette
+        from s3o_warp.kernels.regularisers import arap_loss, dynamic_rigidity_loss, laplacian_loss, symmetry_loss
+
+        m, mc, d = self.model, self.cfg.motion, self.data
+        S = d.crop_size
+        W = m.skinning()
+        verts = m(frames, weights=W)
+        K = m.intrinsics_crop(frames)
+        sil = soft_silhouette(verts, m.faces, K, (S, S), sigma=mc.sigma)
+        mask = d.masks[frames]
+        terms = {"sil": (mc.w_sil, L.silhouette_loss(sil, mask))}
+        face_index, bary, _depth = rasterize(verts, m.faces, K, (S, S))
+        fg = (face_index >= 0).float()
+        if mc.w_color > 0:
+            col = interpolate(m.colors(), m.faces, face_index, bary)
+            terms["color"] = (mc.w_color, L.color_loss(col, d.images[frames], fg * mask))
+        if mc.w_flow > 0 and len(frames) > 1:
+            Kf = m.intrinsics_frame(frames)
+            vflow = L.vertex_flow_crop(verts, Kf, d.crop_scale[frames])
+            fi = face_index[:-1]
+            rflow = interpolate(vflow, m.faces, fi, bary[:-1])
+            pairs = frames[:-1]
+            valid = fg[:-1] * mask[:-1]
+            terms["flow"] = (mc.w_flow, L.flow_loss(rflow, d.flow_fwd[pairs], d.conf_fwd[pairs], valid))
+        if len(frames) > 1 and mc.rigidity != "none" and mc.w_rigid > 0:
+            if mc.rigidity == "dynamic":
+                terms["rigid"] = (mc.w_rigid, dynamic_rigidity_loss(verts, self.edges, W.detach()))
+            else:
+                terms["rigid"] = (mc.w_rigid, arap_loss(verts, self.edges))
+        if self.phase == "joint":
+            terms["lap"] = (mc.w_lap, laplacian_loss(m.verts, m.faces))
+            terms["sym"] = (mc.w_sym, symmetry_loss(m.verts, self.sym_plane))
+        smooth = (
+            L.temporal_smoothness(m.root_aa)
+            + L.temporal_smoothness(m.root_t)
+            + L.temporal_smoothness(m.bone_aa)
+            + L.temporal_smoothness(m.bone_t)
+        )
+        terms["smooth"] = (mc.w_smooth, smooth)
+        terms["bone_reg"] = (mc.w_bone_reg, (m.bone_t[frames] ** 2).mean())
+        return terms, sil, mask
+
+    # -- loop ---------------------------------------------------------------------------------------
+    def run(self) -> None:
+        for phase in PHASES[PHASES.index(self.phase):]:
+            if phase != self.phase:
+                self.phase, self.step = phase, 0
+                self.opt = self._make_optimizer()
+                self.save_checkpoint()
+            n = self.phase_steps(phase)
+            bar = tqdm(total=n, initial=self.step, desc=f"{phase:>6}", dynamic_ncols=True, leave=True)
+            while self.step < n:
+                self.opt.zero_grad(set_to_none=True)
+                if phase == "coarse":
+                    terms, sil, mask = self.coarse_losses()
+                else:
+                    terms, sil, mask = self.motion_losses(self.window())
+                total = sum(w * v for w, v in terms.values())
+                total.backward()
+                self.opt.step()
+                self.step += 1
+                bar.update(1)
+                if self.step % self.cfg.motion.log_every == 0 or self.step == n:
+                    iou = float(L.soft_iou(sil.detach(), mask).mean())
+                    rec = {
+                        "phase": phase,
+                        "step": self.step,
+                        "seconds": round(time.perf_counter() - self.t0, 3),
+                        "loss": float(total),
+                        "iou": iou,
+                        "lr": {g["name"]: g["lr"] for g in self.opt.param_groups},
+                        "terms": {k: float(v) for k, (w, v) in terms.items()},
+                        "weighted": {k: float(w * v) for k, (w, v) in terms.items()},
+                    }
+                    self.history.append(rec)
+                    with open(self.log_file, "a") as fh:
+                        fh.write(json.dumps(rec) + "\n")
+                    bar.set_postfix(loss=f"{float(total):.4f}", iou=f"{iou:.3f}")
+                if self.step % self.cfg.output.checkpoint_every == 0 and self.step < n:
+                    self.save_checkpoint()
+            bar.close()
+        self.phase, self.step = "done", 0
+        self.save_checkpoint()
+
+    # -- checkpoints --------------------------------------------------------------------------------
+    def state(self) -> dict:
+        return {
+            "version": CHECKPOINT_VERSION,
+            "sequence": self.data.name,
+            "num_frames": self.data.num_frames,
+            "phase": self.phase,
+            "step": self.step,
+            "model": self.model.state_dict(),
+            "optimizer": self.opt.state_dict(),
+            "generator": self.gen.get_state(),
+            "torch_rng": torch.get_rng_state(),
+            "config": to_dict(self.cfg),
+        }
+
+    def save_checkpoint(self) -> Path:
+        ck = self.run_dir / "checkpoints"
+        ck.mkdir(parents=True, exist_ok=True)
+        idx = PHASES.index(self.phase) if self.phase in PHASES else len(PHASES)
+        path = ck / f"step-{idx}-{self.phase}-{self.step:06d}.pt"
+        _atomic_save(self.state(), path)
+        kept = sorted(ck.glob("step-*.pt"), key=lambda p: p.stat().st_mtime)
+        for old in kept[: -self.cfg.output.keep_checkpoints]:
+            old.unlink(missing_ok=True)
+        return path
+
+    def load_checkpoint(self, path: Path) -> None:
+        st = torch.load(path, map_location=self.device, weights_only=False)
+        if st.get("version") != CHECKPOINT_VERSION:
+            raise InputError(
+                f"checkpoint {path} has version {st.get('version')}, this s3o-warp writes {CHECKPOINT_VERSION}; "
+                "start a fresh run (drop --resume or use another --out)"
+            )
+        if st.get("sequence") != self.data.name or st.get("num_frames") != self.data.num_frames:
+            raise InputError(
+                f"checkpoint {path} belongs to sequence '{st.get('sequence')}' ({st.get('num_frames')} frames), "
+                f"not '{self.data.name}' ({self.data.num_frames} frames); use another --out or drop --resume"
+            )
+        self.model.load_state_dict(st["model"])
+        self.phase, self.step = st["phase"], st["step"]
+        if self.phase in PHASES:
+            self.opt = self._make_optimizer()
+            self.opt.load_state_dict(st["optimizer"])
+        self.gen.set_state(st["generator"])
+        torch.set_rng_state(st["torch_rng"])
+
+
+def latest_checkpoint(run_dir: Path) -> Path | None:
+    ck = Path(run_dir) / "checkpoints"
+    files = sorted(ck.glob("step-*.pt"), key=lambda p: p.name) if ck.is_dir() else []
+    return files[-1] if files else None
+
+
+# ---------------------------------------------------------------------------------------------------
+# Driver
+# ---------------------------------------------------------------------------------------------------
+
+
+def resolve_device(name: str | None) -> torch.device:
+    """``None`` -> CUDA when Warp sees a GPU, else the CPU; ``cuda`` without CUDA -> one clear error."""
+    import warp as wp
+
+    from s3o_warp.kernels import _warp
+
+    _warp.init()
+    has_cuda = torch.cuda.is_available() and wp.get_cuda_device_count() > 0
+    if name is None:
+        return torch.device("cuda:0" if has_cuda else "cpu")
+    if name.startswith("cuda"):
+        if not has_cuda:
+            raise InputError(f"--device {name}: no CUDA device is visible to Warp and torch here; use --device cpu")
+        idx = int(name.split(":")[1]) if ":" in name else 0
+        if idx >= torch.cuda.device_count():
+            raise InputError(f"--device {name}: only {torch.cuda.device_count()} CUDA device(s); use cuda:0")
+        return torch.device(f"cuda:{idx}")
+    if name != "cpu":
+        raise InputError(f"--device {name}: unknown device; use cpu, cuda or cuda:N")
+    return torch.device("cpu")
+
+
+def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool = False) -> dict:
+    """Fit one sequence and write the run directory; returns the metrics dict."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if not os.access(out_dir, os.W_OK):
+        raise InputError(f"run directory {out_dir} is not writable; choose another --out")
+    torch.manual_seed(cfg.seed)
+    np.random.seed(cfg.seed)
+    save_toml(cfg, out_dir / "config.toml")
+    data = prepare_data(Path(sequence_dir), cfg, out_dir, device)
+    coarse_res = coarse_model(data, cfg)
+    fitter = Fitter(data, coarse_res, cfg, out_dir, device)
+    ck = latest_checkpoint(out_dir) if resume else None
+    if resume and ck is None:
+        log.warning("--resume: no checkpoint in %s, starting from the beginning", out_dir / "checkpoints")
+    if ck is not None:
+        log.info("resuming from %s", ck)
+        fitter.load_checkpoint(ck)
+    elif (out_dir / "log.jsonl").exists():
+        (out_dir / "log.jsonl").unlink()
+    if fitter.phase != "done":
+        fitter.run()
+    return write_outputs(fitter)
+
+
+def write_outputs(fitter: Fitter) -> dict:
+    """Rig files, metrics and renders of a finished fit."""
+    from s3o_warp import outputs
+
+    return outputs.write_run(fitter)

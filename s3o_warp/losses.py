@@ -1,0 +1,55 @@
+"""Reconstruction losses of the fit (paper appendix D), on crops, built from the differentiable ops.
+
+Each function returns a scalar tensor; weights are applied by the caller from the config. Shapes:
+t frames of a batch window, S the crop side, N vertices.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from s3o_warp.geometry import project
+
+
+def silhouette_loss(sil: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Eq. 10 as a mean squared error between the soft silhouette ``(t,S,S)`` and the mask ``(t,S,S)``."""
+    return ((sil - mask) ** 2).mean()
+
+
+def soft_iou(sil: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Hard IoU of ``sil > 0.5`` against ``mask > 0.5`` per frame ``(t,)`` (for progress reporting)."""
+    a = sil > 0.5
+    b = mask > 0.5
+    inter = (a & b).flatten(1).sum(1).float()
+    union = (a | b).flatten(1).sum(1).float().clamp_min(1)
+    return inter / union
+
+
+def vertex_flow_crop(verts_cam: torch.Tensor, K_frame: torch.Tensor, crop_scale: torch.Tensor) -> torch.Tensor:
+    """Projected displacement of each vertex from frame t to t+1, in crop-t pixels ``(t-1, N, 2)``.
+
+    The displacement is taken in full-frame pixels (so the crops' different boxes cancel) and scaled by
+    frame t's crop scale, which is how the observed flow is expressed (``s3o_warp.video``).
+    """
+    p = project(verts_cam, K_frame)
+    return (p[1:] - p[:-1]) * crop_scale[:-1, None, None]
+
+
+def flow_loss(rendered: torch.Tensor, observed: torch.Tensor, conf: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Eq. 11: confidence-weighted L2 norm of the flow error over ``valid`` pixels ``(t,S,S)``."""
+    err = (rendered - observed).norm(dim=-1)
+    w = conf * valid
+    return (w * err).sum() / w.sum().clamp_min(1.0)
+
+
+def color_loss(rendered: torch.Tensor, image: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Eq. 12: L1 between rendered colour ``(t,S,S,3)`` and the image over ``valid`` pixels."""
+    err = (rendered - image).abs().sum(-1)
+    return (err * valid).sum() / valid.sum().clamp_min(1.0) / 3.0
+
+
+def temporal_smoothness(x: torch.Tensor) -> torch.Tensor:
+    """Mean squared difference between consecutive frames of a per-frame parameter ``(T, ...)``."""
+    if x.shape[0] < 2:
+        return x.sum() * 0
+    return ((x[1:] - x[:-1]) ** 2).mean()
