@@ -1,14 +1,82 @@
-"""The ``s3o-fit`` console script."""
+"""The ``s3o-fit`` console script (same as ``python scripts/fit.py``).
+
+    s3o-fit [SEQUENCE] [--device cpu|cuda[:N]] [--out RUN_DIR] [--config FILE] [--preset NAME]
+            [--seed N] [--resume] [--set section.key=value ...]
+
+With no SEQUENCE it renders the built-in procedural quadruped into ``RUN_DIR/sequence`` and fits it.
+Bad input ends with one line on stderr (exit code 2), never a traceback.
+"""
 
 from __future__ import annotations
 
+import argparse
+import logging
 import sys
+from pathlib import Path
+
+from s3o_warp.errors import InputError
+
+log = logging.getLogger("s3o_warp")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from s3o_warp.config import PRESETS
+
+    p = argparse.ArgumentParser(prog="s3o-fit", description="Fit shape, skeleton and motion to one video with masks.")
+    p.add_argument("sequence", nargs="?", help="sequence folder (images/ + masks/, or a DAVIS root/sequence); default: built-in quadruped")
+    p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: CUDA when Warp sees a GPU, else cpu)")
+    p.add_argument("--out", default=None, help="run directory (default: runs/<sequence name>)")
+    p.add_argument("--config", default=None, help="TOML file with settings (see a run's config.toml)")
+    p.add_argument("--preset", default="default", choices=list(PRESETS), help="; ".join(f"{k}: {v[0]}" for k, v in PRESETS.items()))
+    p.add_argument("--seed", type=int, default=None, help="seed for every random choice")
+    p.add_argument("--resume", action="store_true", help="continue from the last checkpoint in the run directory")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override one setting, e.g. motion.steps=300")
+    p.add_argument("--object-id", type=int, default=None, help="palette index of the object in multi-object masks")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    return p
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``s3o-fit``; the end-to-end fit is not built yet, and this says so."""
-    print("s3o-fit: the end-to-end fit is not built yet (issue 4); nothing was fitted.", file=sys.stderr)
-    return 2
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(message)s")
+    try:
+        return _run(args)
+    except InputError as e:
+        print(f"s3o-fit: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("s3o-fit: interrupted; the last checkpoint is kept, continue with --resume", file=sys.stderr)
+        return 130
+
+
+def _run(args) -> int:
+    from s3o_warp.config import make_config
+    from s3o_warp.fit import fit, resolve_device
+
+    cfg = make_config(args.preset, args.config, args.overrides, args.seed)
+    if args.object_id is not None:
+        cfg.data.object_id = args.object_id
+    device = resolve_device(args.device)
+    log.info("s3o-fit: device %s (%s)", device, "requested" if args.device else "auto")
+    if args.sequence is None:
+        out = Path(args.out or "runs/quadruped")
+        seq = out / "sequence"
+        if not (seq / "images").is_dir():
+            from s3o_warp.synth import make_sequence
+
+            log.info("no sequence given: rendering the built-in procedural quadruped into %s", seq)
+            make_sequence(seq, seed=cfg.seed)
+    else:
+        seq = Path(args.sequence)
+        if not seq.exists():
+            raise InputError(f"sequence folder {seq} does not exist; pass a folder with images/ and masks/")
+        out = Path(args.out or Path("runs") / seq.name)
+    metrics = fit(seq, out, cfg, device, resume=args.resume)
+    log.info("run directory: %s", out.resolve())
+    for k in ("iou_mean", "pck_t"):
+        if k in metrics:
+            log.info("%s: %s", k, metrics[k])
+    return 0
 
 
 if __name__ == "__main__":  # pragma: no cover
