@@ -1,0 +1,98 @@
+"""What a finished fit leaves in the run directory: rig files, USD/glTF, metrics and pictures.
+
+Every file is written to a temporary name and renamed (the writers used here all do that).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+log = logging.getLogger(__name__)
+
+
+def _np(x: torch.Tensor) -> np.ndarray:
+    return x.detach().cpu().double().numpy()
+
+
+def _h(rt: np.ndarray) -> np.ndarray:
+    out = np.zeros(rt.shape[:-2] + (4, 4))
+    out[..., :3, :] = rt
+    out[..., 3, 3] = 1
+    return out
+
+
+@torch.no_grad()
+def rig_from_model(fitter):
+    """The fitted model as an ``export.rig.Rig`` (object frame = the coarse phase's canonical frame)."""
+    from s3o_warp.export.rig import Rig
+    from s3o_warp.geometry import quat_to_matrix
+
+    m, d = fitter.model, fitter.data
+    T, B = m.num_frames, m.num_bones
+    frames = torch.arange(T, device=m.verts.device)
+    W = m.skinning()
+    V = quat_to_matrix(m.bone_quat)  # rows = axes
+    bind = np.tile(np.eye(4), (B, 1, 1))
+    bind[:, :3, :3] = _np(V.transpose(-1, -2))
+    bind[:, :3, 3] = _np(m.bone_centers)
+    precisions = _np(m.precisions())
+    joints, pairs = None, None
+    cj = getattr(fitter.coarse, "joints", None)
+    if cj is not None and len(cj[0]):
+        pairs = np.asarray(cj[0], dtype=np.int64)
+        joints = np.asarray(cj[1], dtype=np.float64)
+    return Rig(
+        verts=_np(m.verts).astype(np.float32),
+        faces=m.faces.cpu().numpy().astype(np.int32),
+        colors=_np(m.colors()).astype(np.float32),
+        weights=_np(W).astype(np.float32),
+        bone_names=[f"bone_{b:02d}" for b in range(B)],
+        parents=np.asarray(fitter.coarse.parents, dtype=np.int64),
+        bind=bind,
+        bone_motion=_h(_np(m.bone_rt(frames))),
+        root=_h(_np(m.root_rt(frames))),
+        K=_np(m.intrinsics_frame(frames)),
+        image_size=tuple(int(x) for x in d.frame_size),
+        fps=float(d.fps),
+        frame_names=list(d.frame_names),
+        joints=joints,
+        joint_pairs=pairs,
+        centers=_np(m.bone_centers),
+        precisions=precisions,
+    )
+
+
+def write_run(fitter) -> dict:
+    """Write rig files, USD + glb, metrics.json and renders/ for a finished fit; return the metrics."""
+    from s3o_warp.export.rig import save_rig
+
+    run = Path(fitter.run_dir)
+    rig = rig_from_model(fitter)
+    save_rig(run, rig)
+    name = fitter.data.name
+    try:
+        from s3o_warp.export.gltf import export_gltf
+        from s3o_warp.export.usd import export_usd
+
+        export_usd(rig, run / f"{name}.usdc")
+        export_gltf(rig, run / f"{name}.glb")
+    except ImportError as e:  # pragma: no cover - the exporter is part of the package
+        log.warning("export skipped: %s", e)
+    from s3o_warp.metrics import evaluate_run
+
+    metrics = evaluate_run(run, fitter.data.sequence_dir)
+    metrics["seconds"] = round(fitter.history[-1]["seconds"], 2) if fitter.history else None
+    tmp = run / "metrics.json.tmp"
+    tmp.write_text(json.dumps(metrics, indent=2, default=float))
+    os.replace(tmp, run / "metrics.json")
+    if fitter.cfg.output.render_video:
+        from s3o_warp import pictures
+
+        pictures.write_renders(run, rig, fitter.data, fitter.history)
+    return metrics

@@ -1,0 +1,141 @@
+"""Pictures people look at (``renders/``): input | fit overlay video, skeleton overlay, loss curves."""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+log = logging.getLogger(__name__)
+
+
+def render_fit_frames(rig, chunk: int = 8):
+    """Yield (face_index (H,W), colour (H,W,3) float) of the fitted mesh for every frame, full-frame size."""
+    from s3o_warp.kernels.raster import interpolate, rasterize
+
+    verts = torch.as_tensor(rig.posed_camera(), dtype=torch.float32)
+    faces = torch.as_tensor(rig.faces, dtype=torch.int64)
+    K = torch.as_tensor(rig.K, dtype=torch.float32)
+    colors = torch.as_tensor(rig.colors, dtype=torch.float32)
+    H, W = rig.image_size
+    for s in range(0, verts.shape[0], chunk):
+        with torch.no_grad():
+            fi, bary, _ = rasterize(verts[s : s + chunk], faces, K[s : s + chunk], (H, W))
+            col = interpolate(colors, faces, fi, bary)
+        for k in range(fi.shape[0]):
+            yield fi[k].numpy(), col[k].numpy()
+
+
+def _write_video(frames: list[np.ndarray], path: Path, fps: float) -> Path:
+    """mp4 (OpenCV, mp4v) with a GIF fallback (Pillow); written to a temporary name, then renamed."""
+    h, w = frames[0].shape[:2]
+    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
+    vw = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
+    ok = vw.isOpened()
+    if ok:
+        for f in frames:
+            vw.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
+        vw.release()
+        ok = tmp.exists() and tmp.stat().st_size > 0
+    if ok:
+        os.replace(tmp, path)
+        return path
+    tmp.unlink(missing_ok=True)
+    from PIL import Image
+
+    gif = path.with_suffix(".gif")
+    tmpg = gif.with_name(gif.stem + ".tmp.gif")
+    ims = [Image.fromarray(f) for f in frames]
+    ims[0].save(tmpg, save_all=True, append_images=ims[1:], duration=int(1000 / fps), loop=0)
+    os.replace(tmpg, gif)
+    return gif
+
+
+def overlay_video(run: Path, rig, sequence, fps: float) -> Path:
+    """Side by side input | input with the fitted mesh (rendered colours, outlined) at the input rate."""
+    out = []
+    for k, (fi, col) in enumerate(render_fit_frames(rig)):
+        img = sequence.image(k)
+        fg = fi >= 0
+        over = img.astype(np.float32).copy()
+        tint = (0.35 * over + 0.65 * (col * 255.0)).clip(0, 255)
+        over[fg] = tint[fg]
+        edge = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)) > 0
+        over[edge] = (255, 64, 32)
+        out.append(np.concatenate([img, over.astype(np.uint8)], 1))
+    return _write_video(out, run / "renders" / "overlay.mp4", fps)
+
+
+def skeleton_overlay(run: Path, rig, sequence, frame: int = 0) -> Path | None:
+    """The posed joints and bones drawn over one input frame (PNG)."""
+    if rig.joints is None or rig.joint_pairs is None or len(rig.joints) == 0:
+        return None
+    img = sequence.image(frame).copy()
+    jc = rig.joints_camera()[frame]
+    K = rig.K[frame]
+    p = (K @ jc.T).T
+    p = p[:, :2] / p[:, 2:3]
+    bc = rig.bone_centers_camera()[frame] if hasattr(rig, "bone_centers_camera") else None
+    for j, (a, b) in enumerate(rig.joint_pairs):
+        if bc is not None:
+            for bone in (a, b):
+                q = K @ bc[bone]
+                cv2.line(img, tuple(int(v) for v in p[j]), (int(q[0] / q[2]), int(q[1] / q[2])), (255, 200, 0), 2)
+    for q in p:
+        cv2.circle(img, (int(q[0]), int(q[1])), 4, (255, 0, 0), -1)
+    path = run / "renders" / "skeleton.png"
+    tmp = path.with_name("skeleton.tmp.png")
+    cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+    os.replace(tmp, path)
+    return path
+
+
+def loss_plot(run: Path, history: list[dict]) -> Path | None:
+    """Total loss and mask IoU per logged step, one colour per phase (PNG)."""
+    if not history:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.5))
+    x = 0
+    for phase in dict.fromkeys(h["phase"] for h in history):
+        hs = [h for h in history if h["phase"] == phase]
+        xs = [x + h["step"] for h in hs]
+        a1.plot(xs, [h["loss"] for h in hs], label=phase)
+        a2.plot(xs, [h["iou"] for h in hs], label=phase)
+        x = xs[-1]
+    a1.set_yscale("log")
+    a1.set_xlabel("step")
+    a1.set_title("total loss")
+    a2.set_xlabel("step")
+    a2.set_title("mask IoU (crop)")
+    a1.legend()
+    fig.tight_layout()
+    path = run / "renders" / "loss.png"
+    tmp = path.with_name("loss.tmp.png")
+    fig.savefig(tmp, format="png", dpi=90)
+    plt.close(fig)
+    os.replace(tmp, path)
+    return path
+
+
+def write_renders(run: Path, rig, data, history) -> list[Path]:
+    """All pictures of a run; returns their paths."""
+    from s3o_warp import video
+    from s3o_warp.config import DataConfig
+
+    (Path(run) / "renders").mkdir(parents=True, exist_ok=True)
+    seq = video.open_sequence(data.sequence_dir, DataConfig())
+    paths = [overlay_video(Path(run), rig, seq, data.fps), loss_plot(Path(run), history)]
+    paths.append(skeleton_overlay(Path(run), rig, seq))
+    paths = [p for p in paths if p is not None]
+    for p in paths:
+        log.info("render: %s", p)
+    return paths
