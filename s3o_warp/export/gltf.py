@@ -1,0 +1,203 @@
+"""Rigged, animated glTF 2.0 binary (``.glb``) export of a :class:`~s3o_warp.export.rig.Rig`.
+
+Contents (everything in the WORLD frame, Y up, metres = scene units):
+
+- node ``root`` (identity joint, scene root) with the learned bone tree below it; one skin whose
+  ``joints`` are [root, bones in parent-first order], ``inverseBindMatrices`` = inv(world bind)
+  stored column-major, ``skeleton`` = root;
+- a mesh node with POSITION, NORMAL, COLOR_0 (linear RGB), JOINTS_0 (unsigned short) and
+  WEIGHTS_0: the top 4 weights of every vertex, renormalised (glTF skins hold 4 influences per
+  attribute set; the approximation error is reported);
+- one animation (LINEAR samplers, time k / fps for frame k) with a translation and a rotation
+  (x, y, z, w) channel per joint and for the camera node;
+- a perspective camera node looking down -Z with +Y up. glTF cameras have square pixels, a centred
+  principal point and one field of view for the whole clip: ``yfov = 2 atan(H / (2 fy))`` with the
+  median fy, ``aspectRatio = W / H``. The principal point offset (and any fx != fy or focal change
+  over the frames) cannot be represented; the largest pixel error it causes on the posed vertices is
+  reported as ``ExportReport.camera_px_error``. Use the USD export for pixel-exact cameras.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+
+from s3o_warp.errors import InputError
+from s3o_warp.export.rig import Rig, atomic_path, decompose_rigid, top_k_error, top_k_weights
+from s3o_warp.export.usd import ExportReport
+
+logger = logging.getLogger(__name__)
+
+GLTF_INFLUENCES = 4
+_FLOAT, _USHORT, _UINT = 5126, 5123, 5125
+_ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
+_TYPES = {1: "SCALAR", 3: "VEC3", 4: "VEC4", 16: "MAT4"}
+
+
+class _Blob:
+    """Accumulates the binary chunk and the bufferViews/accessors that point into it."""
+
+    def __init__(self, gltf):
+        self.gltf = gltf
+        self.data = bytearray()
+
+    def add(self, array: np.ndarray, target: int | None = None, minmax: bool = False) -> int:
+        import pygltflib as g
+
+        a = np.ascontiguousarray(array)
+        comp = {np.dtype(np.float32): _FLOAT, np.dtype(np.uint16): _USHORT, np.dtype(np.uint32): _UINT}[a.dtype]
+        width = 1 if a.ndim == 1 else int(np.prod(a.shape[1:]))
+        while len(self.data) % 4:
+            self.data.append(0)
+        offset = len(self.data)
+        self.data += a.tobytes()
+        self.gltf.bufferViews.append(g.BufferView(buffer=0, byteOffset=offset, byteLength=a.nbytes, target=target))
+        acc = g.Accessor(bufferView=len(self.gltf.bufferViews) - 1, componentType=comp, count=int(a.shape[0]), type=_TYPES[width])
+        if minmax:
+            flat = a.reshape(a.shape[0], -1)
+            acc.min = flat.min(0).tolist()
+            acc.max = flat.max(0).tolist()
+        self.gltf.accessors.append(acc)
+        return len(self.gltf.accessors) - 1
+
+
+def gltf_camera_error(rig: Rig, focal: float) -> float:
+    """Largest pixel distance over all frames between the fit's projection and a glTF camera's.
+
+    The glTF camera is the same pose with intrinsics fx = fy = ``focal``, cx = W/2 - 0.5,
+    cy = H/2 - 0.5 (square pixels, centred principal point).
+    """
+    h, w = rig.image_size
+    cam = rig.posed_camera()
+    k = np.array([[focal, 0, w / 2 - 0.5], [0, focal, h / 2 - 0.5], [0, 0, 1.0]])
+    exact = rig.project(cam)
+    uvw = cam @ k.T
+    ideal = uvw[..., :2] / uvw[..., 2:3]
+    return float(np.linalg.norm(ideal - exact, axis=-1).max())
+
+
+def export_gltf(rig: Rig, path: str | os.PathLike) -> ExportReport:
+    """Write ``rig`` as a skinned, animated ``.glb`` with a camera node.
+
+    The file is written to a temporary sibling and renamed.
+
+    Args:
+        rig: the reconstruction to export.
+        path: output ``.glb`` file.
+
+    Returns:
+        An :class:`~s3o_warp.export.usd.ExportReport` with the 4-influence approximation error and
+        the camera model's pixel error (see the module docstring).
+
+    Raises:
+        InputError: the extension is not ``.glb`` or the output folder does not exist.
+    """
+    import pygltflib as g
+
+    path = Path(path)
+    if path.suffix.lower() != ".glb":
+        raise InputError(f"{path}: a glTF export needs the extension .glb")
+    t_count, b_count = rig.num_frames, rig.num_bones
+    k = min(GLTF_INFLUENCES, b_count)
+    gltf = g.GLTF2(asset=g.Asset(version="2.0", generator="s3o-warp"))
+    gltf.scene = 0
+    blob = _Blob(gltf)
+
+    # -------------------------------------------------------------- joints (root + bones, parent first)
+    order = rig.topological_order()
+    names = rig.joint_names()
+    joint_of_bone = np.empty(b_count, dtype=np.int64)
+    joint_of_bone[order] = np.arange(1, b_count + 1)
+    bind_world = rig.bind_world()
+    rest_local = rig.local_transforms(bind_world)
+    rest_t, rest_q = decompose_rigid(rest_local)
+    gltf.nodes.append(g.Node(name="root", children=[]))
+    for b in order:
+        gltf.nodes.append(g.Node(name=names[b], translation=rest_t[b].tolist(), rotation=rest_q[b].tolist(), children=[]))
+    for b in order:
+        parent_node = 0 if rig.parents[b] < 0 else int(joint_of_bone[rig.parents[b]])
+        gltf.nodes[parent_node].children.append(int(joint_of_bone[b]))
+    for node in gltf.nodes:
+        if not node.children:
+            node.children = None  # the spec requires non-empty arrays
+
+    # -------------------------------------------------------------- mesh
+    g_rest = rig.verts.astype(np.float64) @ rig.world_from_object[:3, :3].T + rig.world_from_object[:3, 3]
+    from s3o_warp.export.usd import _vertex_normals
+
+    idx, val = top_k_weights(rig.weights, k)
+    joints0 = np.zeros((len(idx), 4), dtype=np.uint16)
+    weights0 = np.zeros((len(idx), 4), dtype=np.float32)
+    joints0[:, :k] = joint_of_bone[idx]
+    weights0[:, :k] = val
+    attrs = g.Attributes(
+        POSITION=blob.add(g_rest.astype(np.float32), _ARRAY_BUFFER, minmax=True),
+        NORMAL=blob.add(_vertex_normals(g_rest, rig.faces), _ARRAY_BUFFER),
+        COLOR_0=blob.add(np.clip(rig.colors, 0, 1).astype(np.float32), _ARRAY_BUFFER),
+        JOINTS_0=blob.add(joints0, _ARRAY_BUFFER),
+        WEIGHTS_0=blob.add(weights0, _ARRAY_BUFFER),
+    )
+    indices = blob.add(rig.faces.reshape(-1).astype(np.uint32), _ELEMENT_ARRAY_BUFFER)
+    gltf.meshes.append(g.Mesh(name="Mesh", primitives=[g.Primitive(attributes=attrs, indices=indices, mode=4)]))
+    ibm = np.linalg.inv(np.concatenate([np.eye(4)[None], bind_world[order]]))
+    ibm_acc = blob.add(np.swapaxes(ibm, 1, 2).reshape(-1, 16).astype(np.float32))  # column-major
+    gltf.skins.append(g.Skin(name="Skeleton", joints=list(range(b_count + 1)), skeleton=0, inverseBindMatrices=ibm_acc))
+    mesh_node = len(gltf.nodes)
+    gltf.nodes.append(g.Node(name="Mesh", mesh=0, skin=0))
+
+    # -------------------------------------------------------------- camera
+    h, w = rig.image_size
+    depth = rig.posed_camera()[..., 2]
+    focal = float(np.median(rig.K[:, 1, 1]))
+    gltf.cameras.append(
+        g.Camera(
+            name="Camera",
+            type="perspective",
+            perspective=g.Perspective(
+                yfov=float(2 * np.arctan(h / (2 * focal))),
+                aspectRatio=float(w / h),
+                znear=float(max(depth.min() * 0.1, 1e-4)),
+                zfar=float(depth.max() * 10),
+            ),
+        )
+    )
+    c2w = rig.camera_to_world()
+    cam_node = len(gltf.nodes)
+    cam_t, cam_q = decompose_rigid(c2w)
+    gltf.nodes.append(g.Node(name="Camera", camera=0, translation=cam_t[0].tolist(), rotation=cam_q[0].tolist()))
+    cam_err = gltf_camera_error(rig, focal)
+
+    # -------------------------------------------------------------- animation
+    local = np.stack([rig.local_transforms(rig.bone_world(t))[order] for t in range(t_count)])
+    local = np.concatenate([np.broadcast_to(np.eye(4), (t_count, 1, 4, 4)), local], 1)
+    anim_t, anim_q = decompose_rigid(local)
+    times = blob.add((np.arange(t_count) / rig.fps).astype(np.float32), minmax=True)
+    samplers, channels = [], []
+
+    def channel(node: int, prop: str, values: np.ndarray) -> None:
+        samplers.append(g.AnimationSampler(input=times, output=blob.add(values.astype(np.float32)), interpolation="LINEAR"))
+        channels.append(g.AnimationChannel(sampler=len(samplers) - 1, target=g.AnimationChannelTarget(node=node, path=prop)))
+
+    for j in range(b_count + 1):
+        channel(j, "translation", anim_t[:, j])
+        channel(j, "rotation", anim_q[:, j])
+    channel(cam_node, "translation", cam_t)
+    channel(cam_node, "rotation", cam_q)
+    gltf.animations.append(g.Animation(name="Motion", samplers=samplers, channels=channels))
+
+    gltf.scenes.append(g.Scene(name="Scene", nodes=[0, mesh_node, cam_node]))
+    gltf.extras = {"fps": rig.fps, "frame_names": rig.frame_names, "image_size": list(rig.image_size)}
+    gltf.buffers.append(g.Buffer(byteLength=len(blob.data)))
+    gltf.set_binary_blob(bytes(blob.data))
+
+    err = top_k_error(rig, k)
+    with atomic_path(path) as tmp:
+        gltf.save_binary(str(tmp))
+    logger.info(
+        "wrote %s (%d frames, %d bones, top-%d error %.3g = %.2g of the bbox diagonal, camera model error %.3g px)",
+        path, t_count, b_count, k, err[0], err[1], cam_err,
+    )
+    return ExportReport(path=path, influences=k, topk_error=err[0], topk_error_rel=err[1], camera_px_error=cam_err)
