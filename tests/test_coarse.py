@@ -1,0 +1,431 @@
+"""Phase 1 coarse initialisation: 2D skeleton graph, canonical frame, part masks, lift, mesh, bones.
+
+The synthetic quadruped is drawn with OpenCV (torso ellipse, two V-shaped leg pairs, neck + head,
+thin tail). Its skeleton, as the drawing implies: 6 endpoints (4 feet, head, tail) and 4 junctions
+(shoulder, hip, and each leg pair's fork just below the torso); with a larger merge factor each
+fork merges into its torso junction, leaving 2 junctions (shoulder, hip) of degree 4.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+
+from s3o_warp.coarse import (
+    ENDPOINT,
+    JUNCTION,
+    CoarseSettings,
+    canonical_frame,
+    ellipsoid_field,
+    ellipsoid_union_mesh,
+    init_bones,
+    lift_to_3d,
+    part_masks,
+    skeleton_2d,
+)
+from s3o_warp.errors import ConfigError, InputError
+
+FEET = [(86, 215), (132, 215), (190, 215), (236, 215)]
+HEAD = (268, 55)
+TAIL = (38, 82)
+K = np.array([[310.0, 0.0, 150.0], [0.0, 290.0, 128.0], [0.0, 0.0, 1.0]])
+
+
+def quadruped(h: int = 240, w: int = 320) -> np.ndarray:
+    m = np.zeros((h, w), np.uint8)
+    cv2.ellipse(m, (160, 115), (75, 32), 0, 0, 360, 1, -1)
+    for hip_x, (fa, fb) in ((108, FEET[:2]), (212, FEET[2:])):
+        cv2.line(m, (hip_x, 125), fa, 1, 14)
+        cv2.line(m, (hip_x, 125), fb, 1, 14)
+    cv2.line(m, (222, 100), (262, 62), 1, 18)
+    cv2.circle(m, HEAD, 17, 1, -1)
+    cv2.line(m, (90, 105), TAIL, 1, 7)
+    return m.astype(bool)
+
+
+def ellipse(h=120, w=200, angle=10.0) -> np.ndarray:
+    m = np.zeros((h, w), np.uint8)
+    cv2.ellipse(m, (100, 60), (80, 30), angle, 0, 360, 1, -1)
+    return m.astype(bool)
+
+
+@pytest.fixture(scope="module")
+def quad():
+    m = quadruped()
+    return m, skeleton_2d(m)
+
+
+@pytest.fixture(scope="module")
+def lifted(quad):
+    m, sk = quad
+    return m, sk, lift_to_3d(sk, K, 3.0)
+
+
+@pytest.fixture(scope="module")
+def mesh(lifted):
+    _, _, c = lifted
+    return ellipsoid_union_mesh(c)
+
+
+def _nearest(nodes: np.ndarray, p) -> tuple[int, float]:
+    d = np.linalg.norm(nodes - np.asarray(p, float), axis=1)
+    return int(np.argmin(d)), float(d.min())
+
+
+# --------------------------------------------------------------------------------------------------
+# 2D skeleton
+
+
+def test_quadruped_skeleton_counts_and_places(quad):
+    m, sk = quad
+    assert len(sk.endpoints) == 6
+    assert len(sk.junctions) == 4
+    deg = sk.degree()
+    assert (deg[sk.endpoints] == 1).all() and (deg[sk.junctions] >= 3).all()
+    # the medial axis stops about one radius short of a tip; each drawn tip has its own endpoint
+    found = set()
+    for tip in [*FEET, HEAD, TAIL]:
+        i, d = _nearest(sk.nodes[sk.endpoints], tip)
+        assert d < 12.0, (tip, d)
+        found.add(i)
+    assert len(found) == 6
+    # root = the widest junction = a torso junction (shoulder or hip), not a leg fork
+    assert sk.node_type[sk.root] == JUNCTION
+    assert sk.node_radius[sk.root] == sk.node_radius[sk.junctions].max() > 20
+    # the two feet of each pair hang from one fork junction
+    for pair in (FEET[:2], FEET[2:]):
+        feet = [sk.endpoints[_nearest(sk.nodes[sk.endpoints], f)[0]] for f in pair]
+        forks = [[v if u == foot else u for u, v in sk.edges if foot in (u, v)][0] for foot in feet]
+        assert forks[0] == forks[1] and sk.node_type[forks[0]] == JUNCTION
+    # leg radius ~ half the drawn thickness (14 px)
+    leg_edges = [e for e, (u, v) in enumerate(sk.edges) if sk.nodes[[u, v], 1].max() > 200]
+    assert len(leg_edges) == 4
+    np.testing.assert_allclose(sk.edge_radius[leg_edges], 7.0, atol=1.5)
+
+
+def test_merge_factor_merges_forks_into_torso_junctions():
+    sk = skeleton_2d(quadruped(), merge_factor=1.2)
+    assert len(sk.endpoints) == 6
+    assert len(sk.junctions) == 2
+    assert sorted(sk.degree()[sk.junctions].tolist()) == [4, 4]  # torso + 2 legs + neck / tail
+
+
+def test_paths_are_connected_chains_between_their_nodes(quad):
+    _, sk = quad
+    assert len(sk.paths) == len(sk.edges) == len(sk.edge_radius) == len(sk.edge_length)
+    for p, (u, v), length in zip(sk.paths, sk.edges, sk.edge_length):
+        steps = np.abs(np.diff(p, axis=0))
+        assert steps.max() <= 1 and (steps.sum(axis=1) > 0).all()  # 8-connected, no repeats
+        for end, n in ((p[0], u), (p[-1], v)):
+            assert np.linalg.norm(end - sk.nodes[n]) <= max(1.5, sk.node_radius[n])
+        np.testing.assert_allclose(length, np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+
+
+def test_plain_ellipse_has_two_endpoints_no_junction():
+    m = ellipse()
+    for method in ("skeletonize", "medial_axis"):
+        sk = skeleton_2d(m, CoarseSettings(skeleton_method=method))
+        assert len(sk.endpoints) == 2 and len(sk.junctions) == 0, method
+        assert sk.root == -1 and len(sk.edges) == 1
+        # along the major axis (10 degrees), both sides of the centre
+        d = sk.nodes - [100, 60]
+        assert np.all(np.abs(d[:, 1] - np.tan(np.deg2rad(10)) * d[:, 0]) < 4)
+        assert d[:, 0].min() < -30 and d[:, 0].max() > 30
+
+
+def test_jagged_ellipse_spurs_are_pruned():
+    m = ellipse().astype(np.uint8)
+    rng = np.random.default_rng(0)
+    ys, xs = np.nonzero(m)
+    border = np.nonzero(cv2.morphologyEx(m, cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)))
+    pick = rng.choice(len(border[0]), 40, replace=False)
+    for r, c in zip(border[0][pick], border[1][pick]):
+        cv2.circle(m, (int(c), int(r)), 3, 1, -1)  # bumps that grow spurs on the medial axis
+    raw = skeleton_2d(m.astype(bool), CoarseSettings(smooth_sigma=0, prune_factor=0, spur_protrusion=0, merge_factor=0))
+    sk = skeleton_2d(m.astype(bool), CoarseSettings(smooth_sigma=0))
+    assert len(raw.endpoints) > 2  # the bumps really make spurs ...
+    assert len(sk.endpoints) == 2 and len(sk.junctions) == 0  # ... and pruning removes them
+
+
+def test_disc_gives_no_edge_and_lift_refuses():
+    m = np.zeros((64, 64), np.uint8)
+    cv2.circle(m, (32, 32), 20, 1, -1)
+    sk = skeleton_2d(m.astype(bool))
+    assert len(sk.edges) <= 1
+    if len(sk.edges) == 0:
+        with pytest.raises(InputError, match="no edge"):
+            lift_to_3d(sk, K, 2.0)
+
+
+def test_skeleton_input_errors():
+    with pytest.raises(InputError, match="no foreground"):
+        skeleton_2d(np.zeros((10, 10), bool))
+    with pytest.raises(InputError, match=r"2D \(H, W\)"):
+        skeleton_2d(np.ones((2, 10, 10), bool))
+    with pytest.raises(ConfigError, match="prune_factor"):
+        skeleton_2d(quadruped(), prune_factor=-1)
+    with pytest.raises(ConfigError, match="not a setting"):
+        CoarseSettings().replace(prune=1.0)
+    with pytest.raises(ConfigError, match="skeleton_method"):
+        CoarseSettings(skeleton_method="thin")
+
+
+def test_uint8_mask_same_as_bool(quad):
+    m, sk = quad
+    sk8 = skeleton_2d(m.astype(np.uint8) * 255)
+    np.testing.assert_array_equal(sk8.nodes, sk.nodes)
+    np.testing.assert_array_equal(sk8.edges, sk.edges)
+
+
+# --------------------------------------------------------------------------------------------------
+# canonical frame and part masks
+
+
+def _warp(m: np.ndarray, angle: float = 0.0, sx: float = 1.0) -> np.ndarray:
+    h, w = m.shape
+    A = cv2.getRotationMatrix2D((w / 2, h / 2), angle, 1.0)
+    A[:, :2] = A[:, :2] @ np.diag([sx, 1.0])
+    A[:, 2] += (1 - sx) * w / 2 * A[:, 0]
+    return cv2.warpAffine(m.astype(np.uint8), A, (w, h), flags=cv2.INTER_NEAREST) > 0
+
+
+def test_canonical_frame_picks_side_view(quad):
+    m, sk = quad
+    big = np.zeros((320, 320), bool)
+    big[40:280] = m
+    frames = [_warp(big, 90), _warp(big, 0, 0.45), big, _warp(big, 35), _warp(big, -20, 0.7),
+              np.zeros_like(big)]
+    t, ratios = canonical_frame(frames, progress=False)
+    assert t == 2
+    assert ratios.shape == (6,) and ratios[5] == 0
+    assert ratios[2] > 1.2 * np.max(np.delete(ratios, 2))
+    p = sk.pixels()  # the definition: inclusive pixel extents of the skeleton paths
+    np.testing.assert_allclose(ratios[2], (np.ptp(p[:, 0]) + 1) / (np.ptp(p[:, 1]) + 1))
+    with pytest.raises(InputError, match="every mask is empty"):
+        canonical_frame([np.zeros((8, 8), bool)], progress=False)
+
+
+def test_part_masks_cover_foreground_once_and_nearest(quad):
+    m, sk = quad
+    parts = part_masks(m, sk)
+    assert parts.shape == (len(sk.edges), *m.shape) and parts.dtype == bool
+    np.testing.assert_array_equal(parts.sum(axis=0), m.astype(int))
+    assert parts.reshape(len(parts), -1).any(axis=1).all()
+    # reference: brute-force distance of every foreground pixel to every edge's path
+    ys, xs = np.nonzero(m)
+    pix = np.stack([xs, ys], axis=1).astype(np.float64)
+    dmin = np.stack([
+        np.min(np.linalg.norm(pix[:, None, :] - p[None].astype(np.float64), axis=2), axis=1) for p in sk.paths
+    ], axis=1)  # (P, E)
+    label = np.argmax(parts[:, ys, xs], axis=0)
+    np.testing.assert_allclose(dmin[np.arange(len(pix)), label], dmin.min(axis=1), atol=1e-9)
+    with pytest.raises(InputError, match="differs"):
+        part_masks(m[:-1], sk)
+
+
+# --------------------------------------------------------------------------------------------------
+# lift
+
+
+def test_lift_reprojects_nodes_and_places_symmetric_legs(lifted):
+    m, sk, c = lifted
+    np.testing.assert_allclose(c.project(c.nodes), sk.nodes, atol=1e-4, rtol=0)
+    # the two leg pairs (and only they) are symmetric
+    feet = {int(sk.endpoints[_nearest(sk.nodes[sk.endpoints], f)[0]]) for f in FEET}
+    assert len(c.sym_pairs) == 2
+    paired_leaves = set()
+    for e1, e2 in c.sym_pairs:
+        l1, l2 = [int(v if sk.node_type[v] == ENDPOINT else u) for u, v in sk.edges[[e1, e2]]]
+        assert {l1, l2} <= feet
+        np.testing.assert_allclose([c.nodes[l1, 2], c.nodes[l2, 2]], [-c.dz, c.dz], atol=1e-12)
+        paired_leaves |= {l1, l2}
+    assert paired_leaves == feet
+    others = [n for n in range(len(c.nodes)) if n not in feet]
+    np.testing.assert_allclose(c.nodes[others, 2], 0.0, atol=1e-12)  # main chain on the symmetry plane
+    f = 0.5 * (K[0, 0] + K[1, 1])
+    np.testing.assert_allclose(c.dz, CoarseSettings().dz_fraction * sk.node_radius[sk.root] * 3.0 / f)
+    assert c.dz > 0
+    normal, offset = c.symmetry_plane
+    np.testing.assert_array_equal(normal, [0, 0, 1])
+    assert offset == 0
+    # root transform [I | C], C = the root junction back-projected at the depth
+    T = c.root_transform
+    np.testing.assert_array_equal(T[:3, :3], np.eye(3))
+    np.testing.assert_allclose(T[:3, 3], 3.0 * np.linalg.solve(K, [*sk.nodes[sk.root], 1.0]))
+    np.testing.assert_allclose(c.nodes[sk.root], 0.0, atol=1e-12)
+
+
+def test_lift_ellipsoids_follow_edges(lifted):
+    _, sk, c = lifted
+    R = c.rotations
+    np.testing.assert_allclose(np.einsum("eji,ejk->eik", R, R), np.broadcast_to(np.eye(3), R.shape), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-12)
+    f = 0.5 * (K[0, 0] + K[1, 1])
+    for e, (u, v) in enumerate(c.edges):
+        a = c.nodes[v] - c.nodes[u]
+        length = np.linalg.norm(a)
+        np.testing.assert_allclose(c.centres[e], 0.5 * (c.nodes[u] + c.nodes[v]))
+        np.testing.assert_allclose(R[e][:, 0], a / length, atol=1e-12)
+        r = sk.edge_radius[e] * 3.0 / f
+        np.testing.assert_allclose(c.radii[e], [0.5 * length + r, r, r])
+        # both end nodes lie inside their ellipsoid (end_pad = 1 reaches r beyond them)
+        for n in (u, v):
+            q = np.linalg.norm(R[e].T @ (c.nodes[n] - c.centres[e]) / c.radii[e])
+            assert q < 1
+
+
+def test_lift_input_errors(quad):
+    _, sk = quad
+    with pytest.raises(InputError, match="depth"):
+        lift_to_3d(sk, K, 0.0)
+    with pytest.raises(InputError, match=r"\(3, 3\)"):
+        lift_to_3d(sk, K[:2], 1.0)
+    with pytest.raises(InputError, match="fx, fy > 0"):
+        lift_to_3d(sk, -K, 1.0)
+
+
+def test_lift_plain_ellipse_centres_on_its_axis():
+    sk = skeleton_2d(ellipse())
+    c = lift_to_3d(sk, K, 2.0)
+    assert c.root == -1 and c.root_edge == 0 and len(c.sym_pairs) == 0
+    np.testing.assert_allclose(c.project(c.nodes), sk.nodes, atol=1e-4, rtol=0)
+    # the origin (body centre) is the middle of the only edge
+    np.testing.assert_allclose(c.nodes[0], -c.nodes[1], atol=0.02 * np.linalg.norm(c.nodes[0]))
+
+
+# --------------------------------------------------------------------------------------------------
+# union mesh
+
+
+def _raster(c, verts, faces, shape) -> np.ndarray:
+    uv = c.project(verts.astype(np.float64))
+    img = np.zeros(shape, np.uint8)
+    for tri in np.round(uv[faces] * 16).astype(np.int32):  # one polygon per call: no even-odd holes
+        cv2.fillPoly(img, [tri], 1, shift=4)
+    return img > 0
+
+
+def test_union_mesh_watertight_near_target_covers_silhouette(lifted, mesh):
+    m, sk, c = lifted
+    verts, faces = mesh
+    assert verts.dtype == np.float32 and faces.dtype == np.int32
+    assert abs(len(verts) - 2000) <= 0.25 * 2000
+    tm = trimesh.Trimesh(verts, faces, process=False)
+    assert tm.is_watertight and tm.is_winding_consistent and tm.volume > 0
+    assert tm.body_count == 1
+    sil = _raster(c, verts, faces, m.shape)
+    iou = (sil & m).sum() / (sil | m).sum()
+    logging.getLogger(__name__).info("union mesh silhouette IoU %.3f", iou)
+    assert iou > 0.6
+
+
+def test_union_mesh_matches_implicit_union(lifted, mesh):
+    _, _, c = lifted
+    verts, faces = mesh
+    tm = trimesh.Trimesh(verts, faces, process=False)
+    smooth = CoarseSettings().smooth_max * c.radii[:, 1:].mean()
+    # vertices sit on the zero level (up to the grid and Taubin smoothing)
+    g = ellipsoid_field(c, verts.astype(np.float64), smooth)
+    assert np.abs(g).max() < 0.25 * c.radii[:, 1:].min()
+    # volume = Monte-Carlo volume of {field > 0}
+    rng = np.random.default_rng(1)
+    lo, hi = verts.min(0) - 0.05, verts.max(0) + 0.05
+    pts = rng.uniform(lo, hi, size=(200_000, 3))
+    mc = (ellipsoid_field(c, pts, smooth) > 0).mean() * np.prod(hi - lo)
+    np.testing.assert_allclose(tm.volume, mc, rtol=0.06)
+
+
+def test_union_mesh_other_target(lifted):
+    _, _, c = lifted
+    verts, faces = ellipsoid_union_mesh(c, target_vertices=800)
+    assert abs(len(verts) - 800) <= 0.25 * 800
+    assert trimesh.Trimesh(verts, faces, process=False).is_watertight
+
+
+# --------------------------------------------------------------------------------------------------
+# bones
+
+
+def test_init_bones_tree_rooted_at_torso(quad, lifted):
+    _, sk, c = lifted
+    b = init_bones(c)
+    B = len(c.edges)
+    assert b.centres.shape == (B, 3) and b.precisions.shape == (B, 3, 3) and b.lengths.shape == (B,)
+    roots = np.flatnonzero(b.parents == -1)
+    assert roots.tolist() == [c.root_edge]
+    assert sk.root in c.edges[c.root_edge]
+    # the root bone is the widest bone at the root junction: the torso (between shoulder and hip)
+    u, v = c.edges[c.root_edge]
+    assert sk.node_radius[u] > 20 and sk.node_radius[v] > 20
+    # every bone reaches the root through its parents without a cycle
+    for k in range(B):
+        seen, x = set(), k
+        while x != -1:
+            assert x not in seen
+            seen.add(x)
+            x = b.parents[x]
+    # joints: one per non-root bone, (parent, child) sharing the node at the joint position
+    assert len(b.joints) == B - 1
+    for (p, ch), n, pos in zip(b.joints, b.joint_nodes, b.joint_positions):
+        assert b.parents[ch] == p
+        assert n in c.edges[p] and n in c.edges[ch]
+        np.testing.assert_array_equal(pos, c.nodes[n])
+    # the joint node of a child bone is its end nearer the root junction (graph hops)
+    hops = {sk.root: 0}
+    frontier = [sk.root]
+    while frontier:
+        nxt = []
+        for n in frontier:
+            for u, v in c.edges:
+                o = v if u == n else u if v == n else None
+                if o is not None and o not in hops:
+                    hops[o] = hops[n] + 1
+                    nxt.append(o)
+        frontier = nxt
+    for (p, ch), n in zip(b.joints, b.joint_nodes):
+        far = [x for x in c.edges[ch] if x != n][0]
+        assert hops[n] < hops[far]
+    np.testing.assert_allclose(b.lengths, np.linalg.norm(c.nodes[c.edges[:, 1]] - c.nodes[c.edges[:, 0]], axis=1))
+    packed_b, packed_j = b.packed()
+    assert packed_b.shape == (B, 13) and packed_j.shape == (B - 1, 5)
+
+
+def test_init_bones_precision(lifted):
+    _, _, c = lifted
+    k = 3.0
+    b = init_bones(c, CoarseSettings(precision_sharpness=k))
+    np.testing.assert_allclose(b.centres, c.centres)
+    # reference: Q = inverse of the covariance R diag(r^2 / k) R^T
+    cov = np.einsum("eij,ej,ekj->eik", c.rotations, c.radii**2 / k, c.rotations)
+    np.testing.assert_allclose(b.precisions, np.linalg.inv(cov), rtol=1e-9)
+    # on the ellipsoid surface the Mahalanobis form equals k
+    rng = np.random.default_rng(0)
+    for e in range(len(c.edges)):
+        d = rng.normal(size=(5, 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        pts = (d * c.radii[e]) @ c.rotations[e].T
+        np.testing.assert_allclose(np.einsum("ni,ij,nj->n", pts, b.precisions[e], pts), k, rtol=1e-9)
+
+
+# --------------------------------------------------------------------------------------------------
+# real masks
+
+
+@pytest.mark.parametrize("frame", ["00000", "00050"])
+def test_davis_cows_skeleton_sanity(shared_data, frame):
+    path = shared_data / "davis" / "Annotations" / "480p" / "cows" / f"{frame}.png"
+    if not path.is_file():
+        pytest.skip(f"{path} not found")
+    m = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 127
+    sk = skeleton_2d(m)
+    logging.getLogger(__name__).info("cows %s: %d endpoints, %d junctions, %d edges, extent ratio %.2f",
+                                     frame, len(sk.endpoints), len(sk.junctions), len(sk.edges), sk.extent_ratio())
+    assert len(sk.endpoints) >= 4 and len(sk.junctions) >= 1
+    parts = part_masks(m, sk)
+    np.testing.assert_array_equal(parts.sum(axis=0), m.astype(int))
+    c = lift_to_3d(sk, np.array([[800.0, 0, 427], [0, 800, 240], [0, 0, 1]]), 5.0)
+    np.testing.assert_allclose(c.project(c.nodes), sk.nodes, atol=1e-4, rtol=0)
