@@ -23,6 +23,14 @@ class DataConfig:
     """OpenCV DIS optical-flow preset: ultrafast, fast or medium."""
     flow_fb_sigma: float = 1.0
     """Forward-backward consistency: confidence = exp(-|f + b(x + f)|^2 / (2 sigma^2)), sigma in crop pixels."""
+    fps: float = 30.0
+    """Frame rate of image-folder sequences (DAVIS included); a video file's own frame rate wins when it has one."""
+    mask_threshold: int = 127
+    """Grey-level and RGB masks: foreground = value > mask_threshold (0-255 scale)."""
+    crop_background: tuple[int, int, int] = (0, 0, 0)
+    """RGB colour given to crop pixels that fall outside the frame (masks get 0 there)."""
+    frame_cache_size: int = 4
+    """Decoded frames (image and mask) a sequence keeps in memory; others are read from disk on demand."""
 
 
 @dataclass

@@ -1,0 +1,786 @@
+"""Reading a sequence: frames + masks from a folder, a DAVIS tree or a video file; square crops.
+
+Input layouts (detected by :func:`open_sequence`, nothing needs renaming):
+
+* a sequence folder ``<seq>/images/*`` + ``<seq>/masks/*`` (same names, or the same count in the
+  same natural-sorted order); optional ``<seq>/keypoints.json`` and ``<seq>/ground_truth/`` are
+  recorded as paths and never read here;
+* a DAVIS tree: its root (``<root>/JPEGImages/<res>/<name>`` + ``<root>/Annotations/<res>/<name>``,
+  pass ``name=``), or the ``JPEGImages/<res>/<name>`` folder itself;
+* a video file OpenCV can decode (``.mp4``, ``.avi``, ...) plus a mask folder (``masks=``).
+
+Masks: a palette PNG gives object ids (``DataConfig.object_id`` selects one; None = every non-zero
+id); any other mask is foreground where value > ``DataConfig.mask_threshold``.
+
+Pixel convention everywhere (OpenCV's): the centre of pixel (column c, row r) is at (c, r), and an
+image of width W spans [-0.5, W - 0.5]. A :class:`Crop` keeps the exact 3x3 similarity
+``crop_to_frame`` mapping homogeneous crop pixel coordinates to full-frame pixel coordinates, so
+``K_frame = crop_to_frame @ K_crop`` (:func:`intrinsics_crop_to_frame`).
+
+Optical flow on the crops lives in :mod:`s3o_warp.video_flow` (``compute_flow``, ``FlowCache``), also
+reachable as ``s3o_warp.video.compute_flow``.
+
+Every bad input raises :class:`s3o_warp.errors.InputError` (bad settings:
+:class:`s3o_warp.errors.ConfigError`) with one line naming the file or setting and the fix. This
+module never writes files.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import re
+from collections import OrderedDict
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+from tqdm.auto import tqdm
+
+from s3o_warp.config import DataConfig
+from s3o_warp.errors import ConfigError, InputError
+
+log = logging.getLogger(__name__)
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+"""File name endings read as frames or masks (case-insensitive); other files in the folders are ignored."""
+
+FLOW_PRESETS = {
+    "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
+    "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+    "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
+}
+"""``DataConfig.flow_preset`` names and their OpenCV DIS presets."""
+
+__all__ = [
+    "Crop",
+    "Sequence",
+    "open_sequence",
+    "check_data_config",
+    "crop_frame",
+    "crop_transform",
+    "mask_bbox",
+    "largest_component",
+    "map_points",
+    "intrinsics_crop_to_frame",
+    "intrinsics_frame_to_crop",
+    "warp_similarity",
+    "compute_flow",
+    "FlowCache",
+    "FlowPair",
+]
+
+
+def __getattr__(name: str) -> Any:
+    """Lazy re-export of the flow API from :mod:`s3o_warp.video_flow` (avoids a circular import)."""
+    if name in ("compute_flow", "FlowCache", "FlowPair"):
+        from s3o_warp import video_flow
+
+        return getattr(video_flow, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+# --------------------------------------------------------------------------------------------------
+# Settings
+# --------------------------------------------------------------------------------------------------
+
+
+def check_data_config(cfg: DataConfig) -> None:
+    """Raise ConfigError (naming ``data.<key>``) for a DataConfig value that cannot work."""
+    if cfg.object_id is not None and (not isinstance(cfg.object_id, int) or cfg.object_id < 0):
+        raise ConfigError(f"data.object_id must be a palette index >= 0 or None, got {cfg.object_id!r}")
+    if not isinstance(cfg.crop_size, int) or cfg.crop_size < 16:
+        raise ConfigError(f"data.crop_size must be an integer >= 16 (pixels), got {cfg.crop_size!r}")
+    if not cfg.crop_scale >= 1.0:
+        raise ConfigError(
+            f"data.crop_scale must be >= 1 so the crop holds the whole mask box, got {cfg.crop_scale!r}"
+        )
+    if cfg.flow_preset not in FLOW_PRESETS:
+        raise ConfigError(
+            f"data.flow_preset must be one of {', '.join(FLOW_PRESETS)}, got {cfg.flow_preset!r}"
+        )
+    if not cfg.flow_fb_sigma > 0:
+        raise ConfigError(f"data.flow_fb_sigma must be > 0 (crop pixels), got {cfg.flow_fb_sigma!r}")
+    if not cfg.fps > 0:
+        raise ConfigError(f"data.fps must be > 0 (frames per second), got {cfg.fps!r}")
+    if not isinstance(cfg.mask_threshold, int) or not 0 <= cfg.mask_threshold < 255:
+        raise ConfigError(f"data.mask_threshold must be an integer in [0, 254], got {cfg.mask_threshold!r}")
+    bg = tuple(cfg.crop_background)
+    if len(bg) != 3 or not all(isinstance(v, int) and 0 <= v <= 255 for v in bg):
+        raise ConfigError(f"data.crop_background must be three integers in [0, 255] (RGB), got {cfg.crop_background!r}")
+    if not isinstance(cfg.frame_cache_size, int) or cfg.frame_cache_size < 2:
+        raise ConfigError(f"data.frame_cache_size must be an integer >= 2, got {cfg.frame_cache_size!r}")
+
+
+# --------------------------------------------------------------------------------------------------
+# Geometry: boxes, crop transforms, point and intrinsics mapping
+# --------------------------------------------------------------------------------------------------
+
+
+def mask_bbox(mask: np.ndarray) -> tuple[int, int, int, int] | None:
+    """Inclusive pixel bounding box ``(x0, y0, x1, y1)`` of a boolean ``(H, W)`` mask; None when empty.
+
+    Concretely, foreground pixel centres span columns x0..x1 and rows y0..y1, so the box's edges in
+    the pixel-centre convention are at x0 - 0.5 and x1 + 0.5.
+    """
+    cols = np.flatnonzero(mask.any(axis=0))
+    if cols.size == 0:
+        return None
+    rows = np.flatnonzero(mask.any(axis=1))
+    return int(cols[0]), int(rows[0]), int(cols[-1]), int(rows[-1])
+
+
+def crop_transform(bbox: tuple[int, int, int, int], crop_size: int, crop_scale: float) -> np.ndarray:
+    """``crop_to_frame`` (3, 3) float64 for the square crop around an inclusive pixel box.
+
+    The square is centred on the box centre ((x0 + x1) / 2, (y0 + y1) / 2) with side
+    ``crop_scale * max(x1 - x0 + 1, y1 - y0 + 1)`` frame pixels; its edges map to the crop image's
+    edges -0.5 and crop_size - 0.5. With a = side / crop_size (frame pixels per crop pixel), crop
+    pixel (c, r) sits at frame point (a (c + 0.5) + left, a (r + 0.5) + top).
+    """
+    x0, y0, x1, y1 = bbox
+    side = crop_scale * max(x1 - x0 + 1, y1 - y0 + 1)
+    a = side / crop_size
+    left = 0.5 * (x0 + x1) - 0.5 * side
+    top = 0.5 * (y0 + y1) - 0.5 * side
+    return np.array([[a, 0.0, left + 0.5 * a], [0.0, a, top + 0.5 * a], [0.0, 0.0, 1.0]])
+
+
+def map_points(points: Any, transform: Any) -> Any:
+    """Apply a 3x3 pixel transform to points ``(..., 2)`` (numpy or torch, same type back).
+
+    Args:
+        points: ``(..., 2)`` pixel coordinates (x = column, y = row), pixel-centre convention.
+        transform: ``(3, 3)`` or, for per-frame points, ``(T, 3, 3)`` broadcast against
+            ``points (T, N, 2)``; e.g. ``Crop.crop_to_frame`` maps crop pixels to frame pixels.
+
+    Returns:
+        ``(..., 2)`` mapped points, dtype of ``points`` (numpy) or promoted (torch).
+    """
+    try:
+        import torch
+
+        is_torch = isinstance(points, torch.Tensor)
+    except ImportError:  # pragma: no cover - torch is a dependency
+        is_torch = False
+    if is_torch:
+        tr = torch.as_tensor(transform, dtype=points.dtype, device=points.device)
+        lin, off = tr[..., :2, :2], tr[..., :2, 2]
+        if tr.dim() == 3:
+            return torch.einsum("tij,tnj->tni", lin, points) + off[:, None, :]
+        return points @ lin.T + off
+    pts = np.asarray(points)
+    tr = np.asarray(transform, dtype=np.float64)
+    lin, off = tr[..., :2, :2], tr[..., :2, 2]
+    if tr.ndim == 3:
+        out = np.einsum("tij,tnj->tni", lin, pts) + off[:, None, :]
+    else:
+        out = pts @ lin.T + off
+    return out.astype(pts.dtype) if np.issubdtype(pts.dtype, np.floating) else out
+
+
+def intrinsics_crop_to_frame(K_crop: Any, crop_to_frame: Any) -> Any:
+    """``K_frame = crop_to_frame @ K_crop``: pinhole intrinsics ``(..., 3, 3)`` from crop to frame pixels.
+
+    Exact because a crop transform is affine (last row 0, 0, 1): projecting with K_frame equals
+    projecting with K_crop and mapping the pixel with crop_to_frame. numpy or torch in, same out.
+    """
+    return _as_like(crop_to_frame, K_crop) @ K_crop
+
+
+def intrinsics_frame_to_crop(K_frame: Any, frame_to_crop: Any) -> Any:
+    """``K_crop = frame_to_crop @ K_frame``: the inverse of :func:`intrinsics_crop_to_frame`."""
+    return _as_like(frame_to_crop, K_frame) @ K_frame
+
+
+def _as_like(m: Any, like: Any) -> Any:
+    try:
+        import torch
+
+        if isinstance(like, torch.Tensor):
+            return torch.as_tensor(m, dtype=like.dtype, device=like.device)
+    except ImportError:  # pragma: no cover
+        pass
+    return np.asarray(m, dtype=np.result_type(np.asarray(like).dtype, np.float64))
+
+
+def warp_similarity(
+    image: np.ndarray,
+    out_to_in: np.ndarray,
+    out_size: tuple[int, int],
+    border_value: float | tuple[float, ...] = 0,
+    interpolation: int = cv2.INTER_LINEAR,
+) -> np.ndarray:
+    """Resample ``image`` on an output grid given by a scale + translation ``out_to_in`` (3, 3).
+
+    Output pixel (c, r) takes the (bilinear) value at input point ``out_to_in @ (c, r, 1)``
+    (pixel-centre convention, exact up to OpenCV's 1/32-pixel interpolation table); outside the
+    input it gets ``border_value``. When the output is more than 2x coarser than the input, the
+    input is first reduced with ``cv2.pyrDown`` (Gaussian, centre-preserving: input pixel x of a
+    pyrDown level is pixel 2x of the level below) so the result is not aliased.
+
+    Args:
+        image: ``(H, W)`` or ``(H, W, C)`` uint8 or float32.
+        out_to_in: ``(3, 3)`` similarity without rotation: ``[[a, 0, tx], [0, a, ty], [0, 0, 1]]``.
+        out_size: ``(height, width)`` of the output.
+        border_value: value (or per-channel values) outside the input.
+        interpolation: OpenCV flag (``cv2.INTER_LINEAR`` or ``cv2.INTER_NEAREST``).
+
+    Returns:
+        ``(height, width[, C])`` array, dtype of ``image``.
+    """
+    m = np.array(out_to_in, dtype=np.float64)
+    src = image
+    if interpolation != cv2.INTER_NEAREST:
+        while m[0, 0] >= 2.0 and min(src.shape[:2]) >= 4:
+            src = cv2.pyrDown(src)
+            # level-k pixel x sits at level-(k-1) pixel 2x, so in level-k pixels the point is p / 2
+            m = np.diag([0.5, 0.5, 1.0]) @ m
+    in_to_out = np.linalg.inv(m)[:2]
+    bv = border_value if isinstance(border_value, (tuple, list)) else (border_value,) * 4
+    return cv2.warpAffine(
+        src,
+        in_to_out,
+        (int(out_size[1]), int(out_size[0])),
+        flags=interpolation,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=tuple(float(v) for v in bv),
+    )
+
+
+@dataclass
+class Crop:
+    """One frame's square crop at the working resolution S = ``DataConfig.crop_size``.
+
+    Attributes:
+        image: ``(S, S, 3) uint8`` RGB crop; pixels outside the frame are ``crop_background``.
+        mask: ``(S, S) bool`` foreground crop; False outside the frame.
+        crop_to_frame: ``(3, 3) float64``; frame pixel = crop_to_frame @ (c, r, 1) for crop pixel (c, r).
+        frame_to_crop: ``(3, 3) float64`` inverse of crop_to_frame.
+        bbox: inclusive frame-pixel mask box ``(x0, y0, x1, y1)`` the crop was made from.
+    """
+
+    image: np.ndarray
+    mask: np.ndarray
+    crop_to_frame: np.ndarray
+    frame_to_crop: np.ndarray
+    bbox: tuple[int, int, int, int]
+
+
+def crop_frame(
+    image: np.ndarray,
+    mask: np.ndarray,
+    crop_size: int,
+    crop_scale: float,
+    background: tuple[int, int, int] = (0, 0, 0),
+    bbox: tuple[int, int, int, int] | None = None,
+) -> Crop:
+    """Square crop of a frame around its mask box, resized to ``crop_size x crop_size``.
+
+    Args:
+        image: ``(H, W, 3)`` uint8 RGB (or float32) full frame.
+        mask: ``(H, W)`` bool foreground; must not be empty.
+        crop_size: S, output side in pixels.
+        crop_scale: square side as a multiple of the mask box's longer side (see :func:`crop_transform`).
+        background: RGB fill where the square leaves the frame.
+        bbox: the mask's box if already known (saves a pass over the mask).
+
+    Returns:
+        :class:`Crop` with the image (bilinear, anti-aliased when shrinking), the mask (resampled as
+        0/255 and thresholded at half) and the exact crop <-> frame transforms.
+
+    Raises:
+        ValueError: empty mask, or image and mask sizes differ.
+    """
+    if image.shape[:2] != mask.shape[:2]:
+        raise ValueError(f"crop_frame(): image {image.shape[:2]} and mask {mask.shape[:2]} differ in size")
+    if bbox is None:
+        bbox = mask_bbox(mask)
+        if bbox is None:
+            raise ValueError("crop_frame(): the mask is empty")
+    c2f = crop_transform(bbox, crop_size, crop_scale)
+    img = warp_similarity(image, c2f, (crop_size, crop_size), tuple(background))
+    msk = warp_similarity(mask.astype(np.uint8) * 255, c2f, (crop_size, crop_size), 0) > 127
+    return Crop(image=img, mask=msk, crop_to_frame=c2f, frame_to_crop=np.linalg.inv(c2f), bbox=bbox)
+
+
+def largest_component(mask: np.ndarray) -> np.ndarray:
+    """The largest 8-connected foreground component of a boolean ``(H, W)`` mask (all False if empty)."""
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return np.zeros_like(mask, dtype=bool)
+    best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    return labels == best
+
+
+# --------------------------------------------------------------------------------------------------
+# Files
+# --------------------------------------------------------------------------------------------------
+
+
+def _natural_key(name: str) -> list[Any]:
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
+
+
+def _list_images(folder: Path) -> list[Path]:
+    files = [
+        p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_EXTENSIONS
+    ]
+    return sorted(files, key=lambda p: _natural_key(p.name))
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    """(H, W) from the file header, without decoding the pixels."""
+    try:
+        with Image.open(path) as im:
+            w, h = im.size
+    except (UnidentifiedImageError, OSError) as exc:
+        raise InputError(f"{path}: cannot read this image ({exc.__class__.__name__}); replace or remove the file") from None
+    return h, w
+
+
+def _read_rgb(path: Path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+    if img is None:
+        raise InputError(f"{path}: OpenCV cannot decode this image; replace or remove the file")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def _read_mask(path: Path, object_id: int | None, threshold: int) -> np.ndarray:
+    """Boolean (H, W) foreground of one mask file; see the module docstring for the rules."""
+    try:
+        with Image.open(path) as im:
+            im.load()
+            mode = im.mode
+            if mode == "P":
+                arr = np.array(im)
+            elif mode in ("1", "L", "I", "I;16", "F"):
+                arr = np.array(im)
+            else:
+                arr = np.array(im.convert("L"))
+    except (UnidentifiedImageError, OSError, SyntaxError) as exc:
+        raise InputError(f"{path}: cannot read this mask ({exc.__class__.__name__}); replace or remove the file") from None
+    if mode == "P":
+        if object_id is None:
+            return arr != 0
+        fg = arr == object_id
+        if not fg.any():
+            ids = ", ".join(str(int(i)) for i in np.unique(arr))
+            raise InputError(
+                f"{path}: palette mask has no pixel with object id {object_id} (ids present: {ids}); "
+                "set data.object_id (--object-id) to the object's id, or fix or remove this frame"
+            )
+        return fg
+    if mode == "1":
+        return arr.astype(bool)
+    if object_id is not None and mode in ("L", "I", "I;16"):
+        # a single-channel label image: the object's pixels carry its id
+        fg = arr == object_id
+        if not fg.any():
+            raise InputError(
+                f"{path}: label mask has no pixel with object id {object_id}; "
+                "set data.object_id to the object's value, or None for binary masks"
+            )
+        return fg
+    return arr > threshold
+
+
+def _sha256_file(path: Path, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+class _FrameSource:
+    """Decodes frame k (RGB uint8) on demand; content digests for cache keys."""
+
+    def __len__(self) -> int:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def read(self, k: int) -> np.ndarray:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def digest(self, k: int) -> str:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def describe(self, k: int) -> str:  # pragma: no cover - interface
+        raise NotImplementedError
+
+
+class _FolderSource(_FrameSource):
+    def __init__(self, files: list[Path]):
+        self.files = files
+        self._digests: dict[int, str] = {}
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def read(self, k: int) -> np.ndarray:
+        return _read_rgb(self.files[k])
+
+    def digest(self, k: int) -> str:
+        if k not in self._digests:
+            self._digests[k] = _sha256_file(self.files[k])
+        return self._digests[k]
+
+    def describe(self, k: int) -> str:
+        return str(self.files[k])
+
+
+class _VideoSource(_FrameSource):
+    """Seeks with CAP_PROP_POS_FRAMES, reading straight on when frames are asked for in order."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        cap = cv2.VideoCapture(str(path))
+        if not cap.isOpened():
+            raise InputError(
+                f"{path}: OpenCV cannot open this video; re-encode it (e.g. ffmpeg -i IN -c:v libx264 OUT.mp4) "
+                "or pass a folder of frames"
+            )
+        ok, first = cap.read()
+        if not ok or first is None:
+            cap.release()
+            raise InputError(
+                f"{path}: OpenCV cannot decode any frame of this video; re-encode it "
+                "(e.g. ffmpeg -i IN -c:v libx264 OUT.mp4) or pass a folder of frames"
+            )
+        n = 1
+        while cap.grab():  # the container's frame count is often wrong: count by decoding
+            n += 1
+        fps = cap.get(cv2.CAP_PROP_FPS)
+        self.fps = float(fps) if fps and np.isfinite(fps) and fps > 0 else None
+        self.size = first.shape[:2]
+        self.n = n
+        self._cap = cap
+        self._next = n  # position of the next frame cap.read() would return
+        self._digest: str | None = None
+
+    def __len__(self) -> int:
+        return self.n
+
+    def read(self, k: int) -> np.ndarray:
+        if k != self._next:
+            self._cap.set(cv2.CAP_PROP_POS_FRAMES, k)
+        ok, frame = self._cap.read()
+        if not ok or frame is None:
+            self._next = -1
+            raise InputError(f"{self.path}: OpenCV cannot decode frame {k} of this video; re-encode it")
+        self._next = k + 1
+        return cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
+
+    def digest(self, k: int) -> str:
+        if self._digest is None:
+            self._digest = _sha256_file(self.path)
+        return f"{self._digest}:{k}"
+
+    def describe(self, k: int) -> str:
+        return f"{self.path} frame {k}"
+
+    def close(self) -> None:
+        self._cap.release()
+
+
+# --------------------------------------------------------------------------------------------------
+# Sequence
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Sequence:
+    """A validated frame + mask sequence, decoded on demand (an LRU keeps a few frames).
+
+    Attributes:
+        name: sequence name (folder name, DAVIS sequence name or video file stem).
+        frame_names: T names, one per frame, in order (file stems, or ``000000``... for a video).
+        size: full-frame ``(H, W)`` in pixels.
+        fps: frames per second (the video's own, else ``DataConfig.fps``).
+        bboxes: ``(T, 4) int64`` inclusive mask box ``(x0, y0, x1, y1)`` per frame, frame pixels.
+        touches_border: ``(T,) bool``: the mask reaches the frame's first/last row or column.
+        mask_digests: T SHA-256 hex digests of the boolean masks (cache keys).
+        image_files: T frame files, or None for a video.
+        video_file: the video, or None for frame files.
+        mask_files: T mask files.
+        keypoints_file: ``keypoints.json`` beside images/masks if present (recorded, never read here).
+        ground_truth_dir: ``ground_truth/`` beside images/masks if present (recorded, never read here).
+        cfg: the DataConfig used (object id, threshold, crop settings).
+    """
+
+    name: str
+    frame_names: list[str]
+    size: tuple[int, int]
+    fps: float
+    bboxes: np.ndarray
+    touches_border: np.ndarray
+    mask_digests: list[str]
+    image_files: list[Path] | None
+    video_file: Path | None
+    mask_files: list[Path]
+    keypoints_file: Path | None
+    ground_truth_dir: Path | None
+    cfg: DataConfig
+    _source: _FrameSource = field(repr=False, compare=False)
+    _lru: OrderedDict = field(default_factory=OrderedDict, init=False, repr=False, compare=False)
+
+    @property
+    def num_frames(self) -> int:
+        """T, the number of frames."""
+        return len(self.frame_names)
+
+    def __len__(self) -> int:
+        return self.num_frames
+
+    def _cached(self, key: tuple[str, int], make) -> np.ndarray:
+        if key in self._lru:
+            self._lru.move_to_end(key)
+            return self._lru[key]
+        val = make()
+        val.setflags(write=False)
+        self._lru[key] = val
+        while len(self._lru) > 2 * self.cfg.frame_cache_size:  # images and masks
+            self._lru.popitem(last=False)
+        return val
+
+    def _index(self, k: int) -> int:
+        if not -self.num_frames <= k < self.num_frames:
+            raise IndexError(f"frame {k} out of range for {self.num_frames} frames")
+        return k % self.num_frames
+
+    def image(self, k: int) -> np.ndarray:
+        """Frame k as ``(H, W, 3) uint8`` RGB (read-only array; decoded on demand)."""
+        k = self._index(k)
+
+        def make() -> np.ndarray:
+            img = self._source.read(k)
+            if img.shape[:2] != tuple(self.size):
+                raise InputError(
+                    f"{self._source.describe(k)}: size {img.shape[1]}x{img.shape[0]} differs from the header's "
+                    f"{self.size[1]}x{self.size[0]}; re-save the file"
+                )
+            return img
+
+        return self._cached(("image", k), make)
+
+    def mask(self, k: int) -> np.ndarray:
+        """Frame k's foreground as ``(H, W) bool`` (read-only array; decoded on demand)."""
+        k = self._index(k)
+        return self._cached(
+            ("mask", k), lambda: _read_mask(self.mask_files[k], self.cfg.object_id, self.cfg.mask_threshold)
+        )
+
+    def frame_digest(self, k: int) -> str:
+        """Content digest of frame k's image (file bytes, or video bytes + index) for cache keys."""
+        return self._source.digest(self._index(k))
+
+    @property
+    def crop_to_frame(self) -> np.ndarray:
+        """``(T, 3, 3) float64`` crop -> frame pixel transforms, from the mask boxes (no decoding)."""
+        return np.stack([crop_transform(tuple(b), self.cfg.crop_size, self.cfg.crop_scale) for b in self.bboxes])
+
+    @property
+    def frame_to_crop(self) -> np.ndarray:
+        """``(T, 3, 3) float64`` inverses of :attr:`crop_to_frame`."""
+        return np.linalg.inv(self.crop_to_frame)
+
+    def crop(self, k: int) -> Crop:
+        """Frame k's square crop (see :func:`crop_frame`), with ``DataConfig`` crop settings."""
+        k = self._index(k)
+        return crop_frame(
+            self.image(k),
+            self.mask(k),
+            self.cfg.crop_size,
+            self.cfg.crop_scale,
+            tuple(self.cfg.crop_background),
+            bbox=tuple(int(v) for v in self.bboxes[k]),
+        )
+
+    def crops(self) -> Iterator[Crop]:
+        """Crops of frames 0..T-1 in order, one at a time (nothing accumulates in memory)."""
+        for k in range(self.num_frames):
+            yield self.crop(k)
+
+    def close(self) -> None:
+        """Release a video decoder and the frame cache."""
+        self._lru.clear()
+        if isinstance(self._source, _VideoSource):
+            self._source.close()
+
+
+def _resolve_layout(path: Path, name: str | None, masks: Path | None) -> tuple[str, Path | None, Path | None, Path, Path | None]:
+    """(name, image folder, video file, mask folder, sequence folder for extras)."""
+    if not path.exists():
+        raise InputError(f"{path}: no such file or folder; pass a sequence folder (images/ + masks/), a DAVIS root or a video file")
+    if path.is_file():
+        if masks is None:
+            raise InputError(f"{path}: a video needs its mask folder; pass masks=<folder> (--masks) with one mask per frame")
+        extras = masks.parent if masks.name == "masks" else None
+        return path.stem, None, path, masks, extras
+    # a DAVIS tree: the root, a resolution folder, or one sequence's frame folder
+    if (path / "JPEGImages").is_dir():
+        res_root = path / "JPEGImages"
+        resolutions = sorted(p.name for p in res_root.iterdir() if p.is_dir())
+        if "480p" in resolutions:
+            res = "480p"
+        elif len(resolutions) == 1:
+            res = resolutions[0]
+        else:
+            raise InputError(
+                f"{res_root}: expected one resolution folder such as 480p, found {resolutions or 'none'}; "
+                "pass the JPEGImages/<resolution>/<sequence> folder itself"
+            )
+        path = res_root / res
+    if path.parent.name == "JPEGImages" and name is not None and (path / name).is_dir():
+        path = path / name
+    elif path.parent.name == "JPEGImages":
+        available = sorted(p.name for p in path.iterdir() if p.is_dir())
+        what = f"unknown sequence {name!r}" if name else "no sequence name given"
+        raise InputError(
+            f"{path}: {what}; pass name=<sequence> (--name), one of: {', '.join(available[:20]) or 'none found'}"
+        )
+    if path.parent.parent.name == "JPEGImages":
+        seq_name = path.name
+        mask_dir = masks or path.parent.parent.parent / "Annotations" / path.parent.name / seq_name
+        if not mask_dir.is_dir():
+            raise InputError(f"{mask_dir}: DAVIS mask folder not found for {path}; pass masks=<folder> (--masks)")
+        return seq_name, path, None, mask_dir, None
+    if name is not None and (path / name / "images").is_dir():
+        path = path / name
+    if (path / "images").is_dir():
+        mask_dir = masks or path / "masks"
+        if not mask_dir.is_dir():
+            raise InputError(f"{mask_dir}: mask folder not found; add masks/ beside images/ (one mask per frame) or pass masks=")
+        return path.name, path / "images", None, mask_dir, path
+    if masks is not None:  # a bare folder of frames + an explicit mask folder
+        return path.name, path, None, masks, None
+    raise InputError(
+        f"{path}: no images/ and masks/ folders and not a DAVIS JPEGImages tree; "
+        "put frames in images/ and masks in masks/, or pass masks=<folder>"
+    )
+
+
+def open_sequence(
+    path: str | Path,
+    *,
+    name: str | None = None,
+    masks: str | Path | None = None,
+    cfg: DataConfig | None = None,
+) -> Sequence:
+    """Open and validate a sequence (layout detected; see the module docstring). Writes nothing.
+
+    Reads every mask once (to validate it and record its box) and every image header; images
+    themselves are decoded later, on demand, by :meth:`Sequence.image`.
+
+    Args:
+        path: a sequence folder (images/ + masks/), a DAVIS root, a DAVIS ``JPEGImages/<res>/<seq>``
+            folder, a folder of frames (with ``masks``), or a video file (with ``masks``).
+        name: the sequence inside a DAVIS root (or a sub-folder of ``path`` holding images/ + masks/).
+        masks: mask folder; required for a video, optional otherwise (overrides the detected one).
+        cfg: data settings; defaults to ``DataConfig()``.
+
+    Returns:
+        The :class:`Sequence`.
+
+    Raises:
+        InputError: one line naming the file or folder and the fix: missing folder, unreadable
+            file, frame/mask count mismatch, size mismatch, empty or all-foreground mask, fewer than
+            2 frames, undecodable video, palette mask without ``data.object_id``.
+        ConfigError: an impossible DataConfig value.
+    """
+    cfg = cfg or DataConfig()
+    check_data_config(cfg)
+    path = Path(path).expanduser()
+    masks = Path(masks).expanduser() if masks is not None else None
+    if masks is not None and not masks.is_dir():
+        raise InputError(f"{masks}: mask folder not found; pass an existing folder with one mask per frame")
+    seq_name, image_dir, video_file, mask_dir, extras = _resolve_layout(path, name, masks)
+
+    mask_files = _list_images(mask_dir)
+    fps = cfg.fps
+    if video_file is not None:
+        source: _FrameSource = _VideoSource(video_file)
+        n_frames = len(source)
+        size = tuple(source.size)
+        fps = source.fps or cfg.fps
+        frame_names = [f"{k:06d}" for k in range(n_frames)]
+        image_files = None
+        what_frames = f"{video_file} has {n_frames} frames"
+    else:
+        image_files = _list_images(image_dir)
+        n_frames = len(image_files)
+        if n_frames == 0:
+            raise InputError(f"{image_dir}: no frames found (looked for {', '.join(IMAGE_EXTENSIONS)}); add the images")
+        what_frames = f"{image_dir} has {n_frames} frames"
+    if len(mask_files) != n_frames:
+        raise InputError(
+            f"{what_frames} but {mask_dir} has {len(mask_files)} masks; give exactly one mask per frame"
+        )
+    if image_files is not None:
+        mask_by_stem = {p.stem: p for p in mask_files}
+        if all(p.stem in mask_by_stem for p in image_files):
+            mask_files = [mask_by_stem[p.stem] for p in image_files]
+        else:
+            log.info("%s: frame and mask names differ; pairing them in sorted order", mask_dir)
+        frame_names = [p.stem for p in image_files]
+        source = _FolderSource(image_files)
+        size = _image_size(image_files[0])
+        for f in image_files[1:]:
+            s = _image_size(f)
+            if s != size:
+                raise InputError(
+                    f"{f}: size {s[1]}x{s[0]} differs from {image_files[0].name}'s {size[1]}x{size[0]}; "
+                    "all frames must have one size"
+                )
+    if n_frames < 2:
+        raise InputError(f"{what_frames}; a sequence needs at least 2 frames (optical flow pairs them)")
+
+    bboxes = np.zeros((n_frames, 4), dtype=np.int64)
+    touches = np.zeros(n_frames, dtype=bool)
+    digests: list[str] = []
+    H, W = size
+    for k, mf in enumerate(tqdm(mask_files, desc=f"{seq_name}: masks", unit="mask", leave=False, disable=None)):
+        m = _read_mask(mf, cfg.object_id, cfg.mask_threshold)
+        if m.shape != (H, W):
+            frame = image_files[k] if image_files is not None else f"{video_file} frame {k}"
+            raise InputError(
+                f"{mf}: mask size {m.shape[1]}x{m.shape[0]} differs from its frame's {W}x{H} ({frame}); "
+                "resize the mask to the frame"
+            )
+        bb = mask_bbox(m)
+        if bb is None:
+            raise InputError(
+                f"{mf}: the mask is empty (no foreground); fix the mask or remove this frame and its image"
+            )
+        if m.all():
+            raise InputError(
+                f"{mf}: the mask is all foreground (no background); fix the mask (foreground = value > "
+                f"{cfg.mask_threshold}, or a palette id) or remove this frame"
+            )
+        bboxes[k] = bb
+        touches[k] = bool(m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any())
+        digests.append(hashlib.sha256(np.packbits(m).tobytes() + str(m.shape).encode()).hexdigest())
+
+    keypoints = extras / "keypoints.json" if extras is not None and (extras / "keypoints.json").is_file() else None
+    gt = extras / "ground_truth" if extras is not None and (extras / "ground_truth").is_dir() else None
+    log.info("%s: %d frames %dx%d at %.3g fps", seq_name, n_frames, W, H, fps)
+    return Sequence(
+        name=seq_name,
+        frame_names=frame_names,
+        size=(int(H), int(W)),
+        fps=float(fps),
+        bboxes=bboxes,
+        touches_border=touches,
+        mask_digests=digests,
+        image_files=image_files,
+        video_file=video_file,
+        mask_files=mask_files,
+        keypoints_file=keypoints,
+        ground_truth_dir=gt,
+        cfg=cfg,
+        _source=source,
+    )
