@@ -16,8 +16,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass, fields
 from typing import Literal
 
+import cv2
 import numpy as np
 from scipy import ndimage
+from skimage.morphology import medial_axis, skeletonize
 from tqdm import tqdm
 
 from s3o_warp.errors import ConfigError, InputError
@@ -49,6 +51,8 @@ class CoarseSettings:
     protrude, real limbs protrude by their length."""
     merge_factor: float = 0.8
     """Merge two junctions joined by an edge when closer than merge_factor x the larger radius (Hi-LASSIE: 0.8)."""
+    canonical_size: int = 320
+    """canonical_frame() shrinks each mask so its longer side is at most this many pixels (speed); 0 = as is."""
     sym_length_ratio: float = 1.6
     """Two leaf edges of one junction may be a symmetric limb pair if longer / shorter length <= this."""
     sym_radius_ratio: float = 1.6
@@ -78,7 +82,7 @@ class CoarseSettings:
 
     def __post_init__(self) -> None:
         positive = ("prune_factor", "spur_protrusion", "merge_factor", "end_pad", "smooth_max", "smooth_sigma", "dz_fraction",
-                    "taubin_iterations")
+                    "taubin_iterations", "canonical_size")
         for name in positive:
             if getattr(self, name) < 0:
                 raise ConfigError(f"coarse.{name} must be >= 0, got {getattr(self, name)}; set a non-negative value")
@@ -459,8 +463,6 @@ def skeleton_2d(mask, settings: CoarseSettings | None = None, *, prune_factor: f
     if over:
         s = s.replace(**over)
     m = _clean_mask(_check_mask(mask), s)
-    from skimage.morphology import medial_axis, skeletonize
-
     if s.skeleton_method == "medial_axis":
         skel = medial_axis(m)
     else:
@@ -505,7 +507,8 @@ def canonical_frame(masks: Sequence | np.ndarray, settings: CoarseSettings | Non
 
     The ratio of a frame is :meth:`Skeleton2D.extent_ratio`: the bounding box of every skeleton pixel
     of the kept graph (edge paths), width / height with both extents counted inclusively in pixels,
-    ``(x_max - x_min + 1) / (y_max - y_min + 1)``. A frame with an empty mask gets ratio 0.
+    ``(x_max - x_min + 1) / (y_max - y_min + 1)``, computed on the mask shrunk (area interpolation,
+    > 0.5) so its longer side is at most ``canonical_size`` pixels. An empty mask gets ratio 0.
 
     Args:
         masks: T masks, a list of (H, W) arrays or a (T, H, W) array (bool, or uint8 > 127).
@@ -518,6 +521,7 @@ def canonical_frame(masks: Sequence | np.ndarray, settings: CoarseSettings | Non
     Raises:
         InputError: no masks, or every mask is empty.
     """
+    s = settings or CoarseSettings()
     if len(masks) == 0:
         raise InputError("canonical_frame(): got no masks; pass the sequence's masks (T >= 1)")
     ratios = np.zeros(len(masks), np.float64)
@@ -526,12 +530,23 @@ def canonical_frame(masks: Sequence | np.ndarray, settings: CoarseSettings | Non
         if not np.any(m):
             log.warning("canonical_frame: mask %d is empty; its ratio is 0", t)
             continue
-        ratios[t] = skeleton_2d(m, settings).extent_ratio()
+        ratios[t] = skeleton_2d(_shrink(m, s.canonical_size), s).extent_ratio()
     if not np.any(ratios > 0):
         raise InputError("canonical_frame(): every mask is empty; check the masks folder (foreground = value > 127)")
     best = int(np.argmax(ratios))
     log.info("canonical frame %d (horizontal/vertical skeleton extent %.3f)", best, ratios[best])
     return best, ratios
+
+
+def _shrink(mask: np.ndarray, size: int) -> np.ndarray:
+    """The mask resized (area average > 0.5) so its longer side is at most size pixels (0 = unchanged)."""
+    m = _check_mask(mask)
+    scale = size / max(m.shape) if size > 0 else 1.0
+    if scale >= 1.0:
+        return m
+    w, h = max(1, round(m.shape[1] * scale)), max(1, round(m.shape[0] * scale))
+    small = cv2.resize(m.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) > 0.5
+    return small if small.any() else m
 
 
 def part_masks(mask, skel: Skeleton2D) -> np.ndarray:
