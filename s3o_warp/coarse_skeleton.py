@@ -38,7 +38,7 @@ class CoarseSettings:
     """Every setting of the coarse model initialisation (Phase 1), with its default."""
 
     smooth_sigma: float = 1.0
-    """Gaussian blur (pixels) of the mask before thinning, re-thresholded at 0.5; 0 = none. Calms spurs of jagged masks."""
+    """Gaussian blur (pixels) of the mask before thinning, re-thresholded at 0.5; 0 = none (calms jagged masks)."""
     fill_holes: bool = True
     """Fill holes of the silhouette first, so the skeleton is a tree (a hole would make a loop)."""
     skeleton_method: Literal["skeletonize", "medial_axis"] = "skeletonize"
@@ -81,8 +81,8 @@ class CoarseSettings:
     """Bone precision Q = V^T diag(k / r^2) V with k this; larger = sharper skinning Gaussians."""
 
     def __post_init__(self) -> None:
-        positive = ("prune_factor", "spur_protrusion", "merge_factor", "end_pad", "smooth_max", "smooth_sigma", "dz_fraction",
-                    "taubin_iterations", "canonical_size")
+        positive = ("prune_factor", "spur_protrusion", "merge_factor", "end_pad", "smooth_max", "smooth_sigma",
+                    "dz_fraction", "taubin_iterations", "canonical_size")
         for name in positive:
             if getattr(self, name) < 0:
                 raise ConfigError(f"coarse.{name} must be >= 0, got {getattr(self, name)}; set a non-negative value")
@@ -443,8 +443,9 @@ def skeleton_2d(mask, settings: CoarseSettings | None = None, *, prune_factor: f
     adjacent junction pixels are one junction); trace the connection chains between nodes as edges;
     then repeat until stable: drop endpoint edges shorter than ``prune_factor`` x their junction's
     radius or whose tip disc protrudes from the junction's disc by less than ``spur_protrusion`` x
-    that radius (a junction keeps at least one edge), join the two edges of a node left with two, merge junctions joined by an edge and closer
-    than ``merge_factor`` x the larger radius. The largest connected part is kept.
+    that radius (a junction keeps at least one edge), join the two edges of a node left with two,
+    merge junctions joined by an edge and closer than ``merge_factor`` x the larger radius. The
+    largest connected part is kept.
 
     Args:
         mask: (H, W) bool silhouette (uint8 > 127 or any non-zero number also accepted).
