@@ -10,7 +10,8 @@ Input layouts (detected by :func:`open_sequence`, nothing needs renaming):
 * a video file OpenCV can decode (``.mp4``, ``.avi``, ...) plus a mask folder (``masks=``).
 
 Masks: a palette PNG gives object ids (``DataConfig.object_id`` selects one; None = every non-zero
-id); any other mask is foreground where value > ``DataConfig.mask_threshold``.
+id); any other mask is foreground where value (for colour masks: the brightest channel) >
+``DataConfig.mask_threshold``.
 
 Pixel convention everywhere (OpenCV's): the centre of pixel (column c, row r) is at (c, r), and an
 image of width W spans [-0.5, W - 0.5]. A :class:`Crop` keeps the exact 3x3 similarity
@@ -360,8 +361,8 @@ def _read_mask(path: Path, object_id: int | None, threshold: int) -> np.ndarray:
                 arr = np.array(im)
             elif mode in ("1", "L", "I", "I;16", "F"):
                 arr = np.array(im)
-            else:
-                arr = np.array(im.convert("L"))
+            else:  # RGB(A), LA, CMYK...: a coloured mask is foreground where any channel is bright
+                arr = np.array(im.convert("RGB")).max(axis=-1)
     except (UnidentifiedImageError, OSError, SyntaxError) as exc:
         raise InputError(f"{path}: cannot read this mask ({exc.__class__.__name__}); replace or remove the file") from None
     if mode == "P":

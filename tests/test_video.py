@@ -128,6 +128,16 @@ def test_palette_masks_and_object_id(tmp_path):
     np.testing.assert_array_equal(obj2.bboxes[0], [40, 30, 69, 49])
 
 
+def test_colour_masks_use_the_brightest_channel(tmp_path):
+    root = write_seq(tmp_path / "c", n=2)
+    rgb = np.zeros((H, W, 3), np.uint8)
+    rgb[10:30, 5:25] = (0, 0, 128)  # DAVIS-palette dark red, saved as BGR by OpenCV
+    cv2.imwrite(str(root / "masks" / "00001.png"), rgb)
+    seq = open_sequence(root)
+    np.testing.assert_array_equal(seq.bboxes[1], [5, 10, 24, 29])
+    assert seq.mask(1).sum() == 400
+
+
 def test_davis_layouts(shared_data, tmp_path):
     davis = shared_data / "davis"
     by_name = open_sequence(davis, name="cows")
@@ -173,6 +183,12 @@ def test_video_layout_and_seeking(tmp_path, fourcc, ext):
     written = shift(base, 5, 0).astype(int)
     err_rgb = np.abs(in_order[5] - written).mean()
     assert err_rgb < 16 and err_rgb < 0.5 * np.abs(in_order[5] - written[..., ::-1]).mean()
+    # flow over the video (frames decoded in order), cached on the video's content
+    cfg = DataConfig(crop_size=32, flow_preset="ultrafast")
+    seq = open_sequence(video, masks=tmp_path / "seq" / "masks", cfg=cfg)
+    fc = compute_flow(seq, tmp_path / "run" / "cache")
+    assert (fc.computed, len(fc)) == (n - 1, n - 1)
+    assert compute_flow(seq, tmp_path / "run" / "cache").hits == n - 1
     seq.close()
 
 
