@@ -329,7 +329,9 @@ def _natural_key(name: str) -> list[Any]:
 
 def _list_images(folder: Path) -> list[Path]:
     files = [
-        p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_EXTENSIONS
+        p
+        for p in folder.iterdir()
+        if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_EXTENSIONS
     ]
     return sorted(files, key=lambda p: _natural_key(p.name))
 
@@ -340,7 +342,9 @@ def _image_size(path: Path) -> tuple[int, int]:
         with Image.open(path) as im:
             w, h = im.size
     except (UnidentifiedImageError, OSError) as exc:
-        raise InputError(f"{path}: cannot read this image ({exc.__class__.__name__}); replace or remove the file") from None
+        raise InputError(
+            f"{path}: cannot read this image ({exc.__class__.__name__}); replace or remove the file"
+        ) from None
     return h, w
 
 
@@ -364,7 +368,9 @@ def _read_mask(path: Path, object_id: int | None, threshold: int) -> np.ndarray:
             else:  # RGB(A), LA, CMYK...: a coloured mask is foreground where any channel is bright
                 arr = np.array(im.convert("RGB")).max(axis=-1)
     except (UnidentifiedImageError, OSError, SyntaxError) as exc:
-        raise InputError(f"{path}: cannot read this mask ({exc.__class__.__name__}); replace or remove the file") from None
+        raise InputError(
+            f"{path}: cannot read this mask ({exc.__class__.__name__}); replace or remove the file"
+        ) from None
     if mode == "P":
         if object_id is None:
             return arr != 0
@@ -613,13 +619,19 @@ class Sequence:
             self._source.close()
 
 
-def _resolve_layout(path: Path, name: str | None, masks: Path | None) -> tuple[str, Path | None, Path | None, Path, Path | None]:
+def _resolve_layout(
+    path: Path, name: str | None, masks: Path | None
+) -> tuple[str, Path | None, Path | None, Path, Path | None]:
     """(name, image folder, video file, mask folder, sequence folder for extras)."""
     if not path.exists():
-        raise InputError(f"{path}: no such file or folder; pass a sequence folder (images/ + masks/), a DAVIS root or a video file")
+        raise InputError(
+            f"{path}: no such file or folder; pass a sequence folder (images/ + masks/), a DAVIS root or a video file"
+        )
     if path.is_file():
         if masks is None:
-            raise InputError(f"{path}: a video needs its mask folder; pass masks=<folder> (--masks) with one mask per frame")
+            raise InputError(
+                f"{path}: a video needs its mask folder; pass masks=<folder> (--masks) with one mask per frame"
+            )
         extras = masks.parent if masks.name == "masks" else None
         return path.stem, None, path, masks, extras
     # a DAVIS tree: the root, a resolution folder, or one sequence's frame folder
@@ -655,7 +667,9 @@ def _resolve_layout(path: Path, name: str | None, masks: Path | None) -> tuple[s
     if (path / "images").is_dir():
         mask_dir = masks or path / "masks"
         if not mask_dir.is_dir():
-            raise InputError(f"{mask_dir}: mask folder not found; add masks/ beside images/ (one mask per frame) or pass masks=")
+            raise InputError(
+                f"{mask_dir}: mask folder not found; add masks/ beside images/ (one mask per frame) or pass masks="
+            )
         return path.name, path / "images", None, mask_dir, path
     if masks is not None:  # a bare folder of frames + an explicit mask folder
         return path.name, path, None, masks, None

@@ -291,5 +291,7 @@ def compute_flow(seq: Sequence, cache_dir: str | Path, cfg: DataConfig | None = 
         cache_dir.mkdir(parents=True, exist_ok=True)
         _save_atomic(files[t], arr)
     hits = len(files) - len(todo)
-    log.info("%s: optical flow for %d pairs (%d computed, %d cached) in %s", seq.name, len(files), len(todo), hits, cache_dir)
+    log.info(
+        "%s: optical flow for %d pairs (%d computed, %d cached) in %s", seq.name, len(files), len(todo), hits, cache_dir
+    )
     return FlowCache(cache_dir=cache_dir, files=files, crop_size=S, crop_to_frame=c2f, computed=len(todo), hits=hits)

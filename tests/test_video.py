@@ -201,7 +201,8 @@ def test_crop_transform_formula():
     # the crop's edges map to the square's edges
     m = crop_transform((0, 0, 9, 4), crop_size=8, crop_scale=1.5)
     side, a = 15.0, 15.0 / 8
-    np.testing.assert_allclose(map_points(np.array([[-0.5, -0.5], [7.5, 7.5]]), m), [[4.5 - side / 2, 2 - side / 2], [4.5 + side / 2, 2 + side / 2]])
+    edges = map_points(np.array([[-0.5, -0.5], [7.5, 7.5]]), m)
+    np.testing.assert_allclose(edges, [[4.5 - side / 2, 2 - side / 2], [4.5 + side / 2, 2 + side / 2]])
     assert m[0, 0] == pytest.approx(a)
 
 
@@ -216,7 +217,8 @@ def test_crop_marks_land_where_the_transform_says(crop_size, crop_scale):
     sigma = max(2.0, 1.2 * a)  # the mark spans a few crop pixels, whatever the scale
     cy, cx = np.mgrid[0:crop_size, 0:crop_size].astype(np.float64)
     centre = (crop_size - 1) / 2  # the box centre (62, 62) lands on the crop's centre, whatever the matrix says
-    np.testing.assert_allclose(map_points(np.array([62.0, 62.0]), np.linalg.inv(crop_transform(mask_bbox(mask), crop_size, crop_scale))), [centre, centre])
+    f2c = np.linalg.inv(crop_transform(mask_bbox(mask), crop_size, crop_scale))
+    np.testing.assert_allclose(map_points(np.array([62.0, 62.0]), f2c), [centre, centre])
     for x, y in [[50.3, 45.7], [70.0, 80.25], [61.6, 60.9], [62.0, 62.0]]:  # well inside the mask box
         img = np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / (2 * sigma**2)).astype(np.float32)
         crop = crop_frame(np.repeat(img[..., None], 3, axis=2), mask, crop_size, crop_scale)
@@ -402,7 +404,8 @@ def test_compute_flow_cache_hit(tmp_path):
     pair = fc[1]
     assert pair.flow_fwd.shape == (32, 32, 2) and pair.conf_bwd.shape == (32, 32)
     assert isinstance(pair.flow_fwd.base, np.memmap) or isinstance(pair.flow_fwd, np.memmap)
-    direct = pair_flow(seq.image(1), seq.image(2), seq.crop_to_frame[1], seq.crop_to_frame[2], 32, 1.0, make_dis("fast"))
+    c2f = seq.crop_to_frame
+    direct = pair_flow(seq.image(1), seq.image(2), c2f[1], c2f[2], 32, 1.0, make_dis("fast"))
     np.testing.assert_array_equal(np.asarray(pair.flow_fwd), direct[..., 0:2])
 
     seq2 = open_sequence(root, cfg=cfg)
@@ -490,8 +493,10 @@ def test_bad_mask_content(tmp_path):
     lab[10:20, 10:20] = 1
     Image.fromarray(lab, mode="P").save(root / "masks" / "00001.png")
     Image.fromarray(lab, mode="P").save(root / "masks" / "00000.png")
-    msg = assert_bad(root, tmp_path, "no pixel with object id 3 \\(ids present: 0, 1\\)", [root / "masks" / "00000.png"],
-                     cfg=DataConfig(object_id=3))
+    msg = assert_bad(
+        root, tmp_path, "no pixel with object id 3 \\(ids present: 0, 1\\)", [root / "masks" / "00000.png"],
+        cfg=DataConfig(object_id=3),
+    )
     assert "data.object_id" in msg
 
 
