@@ -65,20 +65,25 @@ def prepare_data(sequence_dir: Path, cfg: Config, run_dir: Path, device: torch.d
     """Open the sequence, crop every frame and compute (or load) the forward flow and its confidence."""
     from s3o_warp import video
 
-    seq = video.open_sequence(sequence_dir, cfg.data)
-    crops = video.crop_sequence(seq, cfg.data)
-    flow = video.compute_flow(seq, crops, run_dir / "cache", cfg.data)
+    seq = video.open_sequence(sequence_dir, cfg=cfg.data)
     T = seq.num_frames
-    imgs = np.stack([c.image for c in crops]).astype(np.float32) / 255.0
-    masks = np.stack([c.mask for c in crops]).astype(np.float32)
-    c2f = np.stack([c.crop_to_frame for c in crops]).astype(np.float32)
-    fwd = np.stack([flow.forward(t)[0] for t in range(T - 1)]).astype(np.float32)
-    conf = np.stack([flow.forward(t)[1] for t in range(T - 1)]).astype(np.float32)
+    if T < 2:
+        raise InputError(f"sequence {sequence_dir} has {T} frame(s); the fit needs at least 2")
+    imgs = np.zeros((T, cfg.data.crop_size, cfg.data.crop_size, 3), np.float32)
+    masks = np.zeros((T, cfg.data.crop_size, cfg.data.crop_size), np.float32)
+    c2f = np.zeros((T, 3, 3), np.float32)
+    for k, crop in enumerate(seq.crops()):
+        imgs[k] = crop.image.astype(np.float32) / 255.0
+        masks[k] = crop.mask
+        c2f[k] = crop.crop_to_frame
+    flow = video.compute_flow(seq, run_dir / "cache", cfg.data)
+    fwd = np.stack([np.asarray(flow.pair(t).flow_fwd) for t in range(T - 1)]).astype(np.float32)
+    conf = np.stack([np.asarray(flow.pair(t).conf_fwd) for t in range(T - 1)]).astype(np.float32)
     dev = dict(device=device)
     return FitData(
         name=seq.name,
         frame_names=list(seq.frame_names),
-        frame_size=tuple(seq.frame_size),
+        frame_size=tuple(int(x) for x in seq.size),
         fps=float(seq.fps),
         images=torch.from_numpy(imgs).to(**dev),
         masks=torch.from_numpy(masks).to(**dev),
@@ -103,6 +108,7 @@ class CoarseResult:
     parents: np.ndarray  # (B,) kinematic tree of the initial bones (-1 root)
     part_masks: torch.Tensor  # (P,S,S) of the canonical frame
     face_parts: torch.Tensor  # (F,) part index of each face
+    joints: tuple = ((), ())  # (bone pairs (J,2), positions (J,3)) in the object frame
 
 
 def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
@@ -110,32 +116,41 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
     from s3o_warp import coarse
 
     masks = data.masks.cpu().numpy() > 0.5
-    c, _ratios = coarse.canonical_frame(list(masks))
-    skel = coarse.skeleton_2d(masks[c])
+    settings = cfg.coarse.init
+    c, _ratios = coarse.canonical_frame(list(masks), settings, progress=False)
+    skel = coarse.skeleton_2d(masks[c], settings)
     S = data.crop_size
     H, W = data.frame_size
     f_full = 0.5 * W / math.tan(math.radians(cfg.coarse.fov_degrees) / 2)
     f_crop = f_full * float(data.crop_scale[c])
     Kc = np.array([[f_crop, 0, (S - 1) / 2], [0, f_crop, (S - 1) / 2], [0, 0, 1]], dtype=np.float64)
-    lifted = coarse.lift_to_3d(skel, Kc, cfg.coarse.depth)
-    verts, faces = coarse.ellipsoid_union_mesh(lifted, target_vertices=cfg.coarse.target_vertices)
-    bones = coarse.init_bones(lifted)
+    lifted = coarse.lift_to_3d(skel, Kc, cfg.coarse.depth, settings)
+    verts, faces = coarse.ellipsoid_union_mesh(lifted, settings=settings)
+    bones = coarse.init_bones(lifted, settings)
     parts = coarse.part_masks(masks[c], skel)
     T = data.num_frames
     root = np.asarray(lifted.root_transform, dtype=np.float64)
-    # face -> part: the part (2D edge) of its nearest bone centre
+    # precision Q = V^T diag(lam) V  ->  orientation V (rows = axes) and log-scales log(lam)
+    lam, U = np.linalg.eigh(np.asarray(bones.precisions, dtype=np.float64))
+    V = np.transpose(U, (0, 2, 1)).copy()
+    V[np.linalg.det(V) < 0, 2] *= -1  # proper rotations
+    # face -> part: the part (2D edge) whose bone dominates the face's vertices
     vt = torch.as_tensor(verts, dtype=torch.float32)
-    d = torch.cdist(vt, torch.as_tensor(bones.centers, dtype=torch.float32))
-    vpart = d.argmin(1)
+    cen = torch.as_tensor(bones.centres, dtype=torch.float32)
+    Q = torch.as_tensor(bones.precisions, dtype=torch.float32)
+    dv = vt[:, None, :] - cen[None]
+    maha = torch.einsum("nbi,bij,nbj->nb", dv, Q, dv)
+    edge_of_bone = torch.as_tensor(np.asarray(bones.edge_of_bone), dtype=torch.int64)
+    vpart = edge_of_bone[maha.argmin(1)]
     ft = torch.as_tensor(faces, dtype=torch.int64)
     fpart = torch.mode(vpart[ft], dim=1).values
     init = ModelInit(
         verts=vt,
         faces=ft,
         colors=torch.full((len(verts), 3), 0.5),
-        centers=torch.as_tensor(bones.centers, dtype=torch.float32),
-        rotations=torch.as_tensor(bones.rotations, dtype=torch.float32),
-        log_scales=torch.as_tensor(np.log(bones.scales), dtype=torch.float32),
+        centers=cen,
+        rotations=torch.as_tensor(V, dtype=torch.float32),
+        log_scales=torch.as_tensor(np.log(np.maximum(lam, 1e-8)), dtype=torch.float32),
         root_R=torch.as_tensor(root[:3, :3], dtype=torch.float32).expand(T, 3, 3).clone(),
         root_t=torch.as_tensor(root[:3, 3], dtype=torch.float32).expand(T, 3).clone(),
         focal=float(f_full),
@@ -146,8 +161,9 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
     return CoarseResult(
         init=init,
         canonical=int(c),
-        sym_plane=(np.asarray(lifted.sym_plane[0], dtype=np.float32), float(lifted.sym_plane[1])),
+        sym_plane=(np.asarray(lifted.symmetry_plane[0], dtype=np.float32), float(lifted.symmetry_plane[1])),
         parents=np.asarray(bones.parents),
+        joints=(np.asarray(bones.joints), np.asarray(bones.joint_positions)),
         part_masks=torch.as_tensor(parts, dtype=torch.float32),
         face_parts=fpart,
     )
@@ -260,8 +276,7 @@ class Fitter:
             col = interpolate(m.colors(), m.faces, face_index, bary)
             terms["color"] = (mc.w_color, L.color_loss(col, d.images[frames], fg * mask))
         if mc.w_flow > 0 and len(frames) > 1:
-            Kf = m.intrinsics_frame(frames)
-            vflow = L.vertex_flow_crop(verts, Kf, d.crop_scale[frames])
+            vflow = L.vertex_flow_crop(verts, K)
             fi = face_index[:-1]
             rflow = interpolate(vflow, m.faces, fi, bary[:-1])
             pairs = frames[:-1]

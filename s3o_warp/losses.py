@@ -25,14 +25,15 @@ def soft_iou(sil: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return inter / union
 
 
-def vertex_flow_crop(verts_cam: torch.Tensor, K_frame: torch.Tensor, crop_scale: torch.Tensor) -> torch.Tensor:
-    """Projected displacement of each vertex from frame t to t+1, in crop-t pixels ``(t-1, N, 2)``.
+def vertex_flow_crop(verts_cam: torch.Tensor, K_crop: torch.Tensor) -> torch.Tensor:
+    """Projected displacement of each vertex from frame t to t+1 in crop pixels ``(t-1, N, 2)``.
 
-    The displacement is taken in full-frame pixels (so the crops' different boxes cancel) and scaled by
-    frame t's crop scale, which is how the observed flow is expressed (``s3o_warp.video``).
+    Matches the observed flow's meaning (``s3o_warp.video_flow``): crop-t pixel x is seen at crop-(t+1)
+    pixel x + flow, so the displacement is ``proj_{t+1}(X^{t+1}) - proj_t(X^t)``, each frame with its own
+    crop intrinsics.
     """
-    p = project(verts_cam, K_frame)
-    return (p[1:] - p[:-1]) * crop_scale[:-1, None, None]
+    p = project(verts_cam, K_crop)
+    return p[1:] - p[:-1]
 
 
 def flow_loss(rendered: torch.Tensor, observed: torch.Tensor, conf: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:

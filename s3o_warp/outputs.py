@@ -94,5 +94,5 @@ def write_run(fitter) -> dict:
     if fitter.cfg.output.render_video:
         from s3o_warp import pictures
 
-        pictures.write_renders(run, rig, fitter.data, fitter.history)
+        pictures.write_renders(run, rig, fitter.data, fitter.history, fitter.cfg.data)
     return metrics

@@ -126,13 +126,13 @@ def loss_plot(run: Path, history: list[dict]) -> Path | None:
     return path
 
 
-def write_renders(run: Path, rig, data, history) -> list[Path]:
+def write_renders(run: Path, rig, data, history, data_cfg=None) -> list[Path]:
     """All pictures of a run; returns their paths."""
     from s3o_warp import video
     from s3o_warp.config import DataConfig
 
     (Path(run) / "renders").mkdir(parents=True, exist_ok=True)
-    seq = video.open_sequence(data.sequence_dir, DataConfig())
+    seq = video.open_sequence(data.sequence_dir, cfg=data_cfg or DataConfig())
     paths = [overlay_video(Path(run), rig, seq, data.fps), loss_plot(Path(run), history)]
     paths.append(skeleton_overlay(Path(run), rig, seq))
     paths = [p for p in paths if p is not None]
