@@ -1,0 +1,244 @@
+"""Warp kernels of the rasteriser's forward passes: tile binning, soft silhouette, z-buffer.
+
+All kernels take projected 2D vertex positions ``xy`` (T, V) vec2 in pixels (the centre of pixel
+(column c, row r) is at (c, r)) and never differentiate themselves: the gradients of the soft
+silhouette are written by hand in ``raster_backward.py`` (its own Warp module), and those of the
+z-buffer's barycentrics come from torch (see ``raster.py``). Bins ("tiles") are numbered
+``t * bins_per_frame + ty * ntx + tx``.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.func
+def cross2_func(u: wp.vec2, v: wp.vec2):
+    """z component of the 2D cross product u x v."""
+    return u[0] * v[1] - u[1] * v[0]
+
+
+@wp.func
+def segment_sq_dist_func(p: wp.vec2, a: wp.vec2, b: wp.vec2):
+    """Squared distance from p to segment ab, the parameter s in [0, 1] of the closest point
+    q = a + s (b - a), and p - q."""
+    e = b - a
+    ee = wp.dot(e, e)
+    s = float(0.0)
+    if ee > 0.0:
+        s = wp.clamp(wp.dot(p - a, e) / ee, 0.0, 1.0)
+    diff = p - (a + s * e)
+    return wp.dot(diff, diff), s, diff
+
+
+@wp.func
+def triangle_sq_dist_func(p: wp.vec2, a: wp.vec2, b: wp.vec2, c: wp.vec2):
+    """Squared distance d^2 from p to the boundary of triangle abc, the nearest edge k (edge k runs
+    from vertex k to vertex k+1 mod 3, first one on ties), its parameter s, p - q, and whether p is
+    strictly inside (three edge functions of one sign, either winding)."""
+    d2, s, diff = segment_sq_dist_func(p, a, b)
+    k = int(0)
+    d2b, sb, diffb = segment_sq_dist_func(p, b, c)
+    if d2b < d2:
+        d2 = d2b
+        s = sb
+        diff = diffb
+        k = 1
+    d2c, sc, diffc = segment_sq_dist_func(p, c, a)
+    if d2c < d2:
+        d2 = d2c
+        s = sc
+        diff = diffc
+        k = 2
+    w0 = cross2_func(b - a, p - a)
+    w1 = cross2_func(c - b, p - b)
+    w2 = cross2_func(a - c, p - c)
+    inside = (w0 > 0.0 and w1 > 0.0 and w2 > 0.0) or (w0 < 0.0 and w1 < 0.0 and w2 < 0.0)
+    return d2, k, s, diff, inside
+
+
+@wp.func
+def log_one_minus_coverage_func(p: wp.vec2, a: wp.vec2, b: wp.vec2, c: wp.vec2, inv_sigma: float, cutoff: float):
+    """log(1 - D) for one face, D = sigmoid(delta d^2 / sigma); 0 when the face is left out
+    (outside with d^2 >= cutoff). Stable: log(1 - D) = -softplus(x)."""
+    d2, k, s, diff, inside = triangle_sq_dist_func(p, a, b, c)
+    out = float(0.0)
+    if inside or d2 < cutoff:
+        x = d2 * inv_sigma
+        if not inside:
+            x = -x
+        out = -(wp.max(x, 0.0) + wp.log(1.0 + wp.exp(-wp.abs(x))))
+    return out
+
+
+@wp.kernel
+def count_tile_faces_kernel(
+    xy: wp.array2d(dtype=wp.vec2),
+    faces: wp.array(dtype=wp.vec3i),
+    front: wp.array2d(dtype=wp.int32),
+    radius: float,
+    width: int,
+    height: int,
+    tile: int,
+    ntx: int,
+    bins_per_frame: int,
+    # outputs
+    face_tiles: wp.array2d(dtype=wp.vec4i),
+    bin_count: wp.array(dtype=wp.int32),
+):
+    """Per (frame, face): the tile range (tx0, tx1, ty0, ty1) of its bbox widened by ``radius``
+    (empty when tx1 < tx0), and +1 to the count of every tile in it."""
+    t, f = wp.tid()
+    face_tiles[t, f] = wp.vec4i(0, -1, 0, -1)
+    if front[t, f] == 0:
+        return
+    i = faces[f]
+    a = xy[t, i[0]]
+    b = xy[t, i[1]]
+    c = xy[t, i[2]]
+    fw = float(width)
+    fh = float(height)
+    xmin = wp.clamp(wp.min(wp.min(a[0], b[0]), c[0]) - radius, -1.0, fw)
+    xmax = wp.clamp(wp.max(wp.max(a[0], b[0]), c[0]) + radius, -1.0, fw)
+    ymin = wp.clamp(wp.min(wp.min(a[1], b[1]), c[1]) - radius, -1.0, fh)
+    ymax = wp.clamp(wp.max(wp.max(a[1], b[1]), c[1]) + radius, -1.0, fh)
+    c0 = wp.max(int(wp.ceil(xmin)), 0)
+    c1 = wp.min(int(wp.floor(xmax)), width - 1)
+    r0 = wp.max(int(wp.ceil(ymin)), 0)
+    r1 = wp.min(int(wp.floor(ymax)), height - 1)
+    if c0 > c1 or r0 > r1:
+        return
+    tx0 = c0 // tile
+    tx1 = c1 // tile
+    ty0 = r0 // tile
+    ty1 = r1 // tile
+    face_tiles[t, f] = wp.vec4i(tx0, tx1, ty0, ty1)
+    for ty in range(ty0, ty1 + 1):
+        for tx in range(tx0, tx1 + 1):
+            wp.atomic_add(bin_count, t * bins_per_frame + ty * ntx + tx, 1)
+
+
+@wp.kernel
+def fill_tile_faces_kernel(
+    face_tiles: wp.array2d(dtype=wp.vec4i),
+    bin_start: wp.array(dtype=wp.int32),
+    ntx: int,
+    bins_per_frame: int,
+    # outputs
+    bin_cursor: wp.array(dtype=wp.int32),
+    bin_faces: wp.array(dtype=wp.int32),
+    entry_bin: wp.array(dtype=wp.int32),
+):
+    """CSR fill: write face f into every tile of its range (slot order sorted afterwards)."""
+    t, f = wp.tid()
+    rng = face_tiles[t, f]
+    for ty in range(rng[2], rng[3] + 1):
+        for tx in range(rng[0], rng[1] + 1):
+            bn = t * bins_per_frame + ty * ntx + tx
+            slot = bin_start[bn] + wp.atomic_add(bin_cursor, bn, 1)
+            bin_faces[slot] = f
+            entry_bin[slot] = bn
+
+
+@wp.kernel
+def render_soft_silhouette_kernel(
+    xy: wp.array2d(dtype=wp.vec2),
+    faces: wp.array(dtype=wp.vec3i),
+    bin_start: wp.array(dtype=wp.int32),
+    bin_count: wp.array(dtype=wp.int32),
+    bin_faces: wp.array(dtype=wp.int32),
+    tile: int,
+    ntx: int,
+    bins_per_frame: int,
+    inv_sigma: float,
+    cutoff: float,
+    # outputs
+    log_trans: wp.array3d(dtype=float),
+):
+    """Per pixel (t, r, c): S = sum over its tile's faces of log(1 - D_j), so A = 1 - exp(S)."""
+    t, r, c = wp.tid()
+    bn = t * bins_per_frame + (r // tile) * ntx + c // tile
+    p = wp.vec2(float(c), float(r))
+    acc = float(0.0)
+    start = bin_start[bn]
+    for k in range(start, start + bin_count[bn]):
+        i = faces[bin_faces[k]]
+        acc += log_one_minus_coverage_func(p, xy[t, i[0]], xy[t, i[1]], xy[t, i[2]], inv_sigma, cutoff)
+    log_trans[t, r, c] = acc
+
+
+@wp.kernel
+def render_soft_silhouette_naive_kernel(
+    xy: wp.array2d(dtype=wp.vec2),
+    faces: wp.array(dtype=wp.vec3i),
+    front: wp.array2d(dtype=wp.int32),
+    radius: float,
+    inv_sigma: float,
+    cutoff: float,
+    # outputs
+    log_trans: wp.array3d(dtype=float),
+):
+    """SoftRas-style O(pixels x faces): every pixel visits every face (bbox early-out only)."""
+    t, r, c = wp.tid()
+    p = wp.vec2(float(c), float(r))
+    acc = float(0.0)
+    for f in range(faces.shape[0]):
+        if front[t, f] == 0:
+            continue
+        i = faces[f]
+        a = xy[t, i[0]]
+        b = xy[t, i[1]]
+        cc = xy[t, i[2]]
+        if p[0] < wp.min(wp.min(a[0], b[0]), cc[0]) - radius or p[0] > wp.max(wp.max(a[0], b[0]), cc[0]) + radius:
+            continue
+        if p[1] < wp.min(wp.min(a[1], b[1]), cc[1]) - radius or p[1] > wp.max(wp.max(a[1], b[1]), cc[1]) + radius:
+            continue
+        acc += log_one_minus_coverage_func(p, a, b, cc, inv_sigma, cutoff)
+    log_trans[t, r, c] = acc
+
+
+@wp.kernel
+def rasterize_faces_kernel(
+    xy: wp.array2d(dtype=wp.vec2),
+    z: wp.array2d(dtype=float),
+    faces: wp.array(dtype=wp.vec3i),
+    bin_start: wp.array(dtype=wp.int32),
+    bin_count: wp.array(dtype=wp.int32),
+    bin_faces: wp.array(dtype=wp.int32),
+    tile: int,
+    ntx: int,
+    bins_per_frame: int,
+    # outputs
+    face_index: wp.array3d(dtype=wp.int32),
+):
+    """Z-buffer per pixel: nearest tile face whose projection covers the pixel centre (all screen
+    barycentrics >= 0, non-zero area), perspective-correct depth; strict < keeps the lower face id
+    on equal depth because tile lists are sorted by face id. -1 for background."""
+    t, r, c = wp.tid()
+    bn = t * bins_per_frame + (r // tile) * ntx + c // tile
+    p = wp.vec2(float(c), float(r))
+    best_z = float(1.0e38)
+    best_f = int(-1)
+    start = bin_start[bn]
+    for k in range(start, start + bin_count[bn]):
+        f = bin_faces[k]
+        i = faces[f]
+        a = xy[t, i[0]]
+        b = xy[t, i[1]]
+        cc = xy[t, i[2]]
+        area2 = cross2_func(b - a, cc - a)
+        if area2 == 0.0:
+            continue
+        l0 = cross2_func(cc - b, p - b) / area2
+        l1 = cross2_func(a - cc, p - cc) / area2
+        l2 = cross2_func(b - a, p - a) / area2
+        if l0 >= 0.0 and l1 >= 0.0 and l2 >= 0.0:
+            inv_z = l0 / z[t, i[0]] + l1 / z[t, i[1]] + l2 / z[t, i[2]]
+            if inv_z > 0.0:
+                zz = 1.0 / inv_z
+                if zz < best_z:
+                    best_z = zz
+                    best_f = f
+    face_index[t, r, c] = best_f
