@@ -401,6 +401,10 @@ def test_gltf_two_bone_is_exact_and_camera_follows_root(tmp_path):
     assert report.camera_px_error > 1.0  # this clip's K changes per frame: the error is real and reported
     prim = gltf.meshes[0].primitives[0]
     assert prim.attributes.COLOR_0 is not None and prim.attributes.NORMAL is not None
+    blob = gltf.binary_blob()
+    jts, wts = read_accessor(gltf, blob, prim.attributes.JOINTS_0), read_accessor(gltf, blob, prim.attributes.WEIGHTS_0)
+    assert (jts[wts == 0] == 0).all() and (wts == 0).any()  # unused influence slots point at joint 0
+    np.testing.assert_allclose(np.linalg.norm(read_accessor(gltf, blob, prim.attributes.NORMAL), axis=1), 1, atol=1e-5)
     assert [n.name for n in gltf.nodes[: rig.num_bones + 1]] == ["root", "bone_00", "bone_01"]
 
 

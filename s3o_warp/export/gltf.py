@@ -64,14 +64,15 @@ class _Blob:
         return len(self.gltf.accessors) - 1
 
 
-def gltf_camera_error(rig: Rig, focal: float) -> float:
+def gltf_camera_error(rig: Rig, focal: float, cam: np.ndarray | None = None) -> float:
     """Largest pixel distance over all frames between the fit's projection and a glTF camera's.
 
     The glTF camera is the same pose with intrinsics fx = fy = ``focal``, cx = W/2 - 0.5,
-    cy = H/2 - 0.5 (square pixels, centred principal point).
+    cy = H/2 - 0.5 (square pixels, centred principal point). ``cam``: optional (T, N, 3)
+    :meth:`Rig.posed_camera`, to avoid recomputing it.
     """
     h, w = rig.image_size
-    cam = rig.posed_camera()
+    cam = rig.posed_camera() if cam is None else cam
     k = np.array([[focal, 0, w / 2 - 0.5], [0, focal, h / 2 - 0.5], [0, 0, 1.0]])
     exact = rig.project(cam)
     uvw = cam @ k.T
@@ -131,8 +132,8 @@ def export_gltf(rig: Rig, path: str | os.PathLike) -> ExportReport:
     idx, val = top_k_weights(rig.weights, k)
     joints0 = np.zeros((len(idx), 4), dtype=np.uint16)
     weights0 = np.zeros((len(idx), 4), dtype=np.float32)
-    joints0[:, :k] = joint_of_bone[idx]
     weights0[:, :k] = val
+    joints0[:, :k] = np.where(weights0[:, :k] > 0, joint_of_bone[idx], 0)  # the spec: unused slots point at joint 0
     attrs = g.Attributes(
         POSITION=blob.add(g_rest.astype(np.float32), _ARRAY_BUFFER, minmax=True),
         NORMAL=blob.add(_vertex_normals(g_rest, rig.faces), _ARRAY_BUFFER),
@@ -150,7 +151,8 @@ def export_gltf(rig: Rig, path: str | os.PathLike) -> ExportReport:
 
     # -------------------------------------------------------------- camera
     h, w = rig.image_size
-    depth = rig.posed_camera()[..., 2]
+    cam_pts = rig.posed_camera()
+    depth = cam_pts[..., 2]
     focal = float(np.median(rig.K[:, 1, 1]))
     gltf.cameras.append(
         g.Camera(
@@ -168,7 +170,7 @@ def export_gltf(rig: Rig, path: str | os.PathLike) -> ExportReport:
     cam_node = len(gltf.nodes)
     cam_t, cam_q = decompose_rigid(c2w)
     gltf.nodes.append(g.Node(name="Camera", camera=0, translation=cam_t[0].tolist(), rotation=cam_q[0].tolist()))
-    cam_err = gltf_camera_error(rig, focal)
+    cam_err = gltf_camera_error(rig, focal, cam_pts)
 
     # -------------------------------------------------------------- animation
     local = np.stack([rig.local_transforms(rig.bone_world(t))[order] for t in range(t_count)])

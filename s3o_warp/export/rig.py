@@ -266,6 +266,10 @@ class Rig:
         g = self.world_from_object
         return self.posed_object(t, weights) @ g[:3, :3].T + g[:3, 3]
 
+    def posed_world_frames(self, weights: np.ndarray | None = None) -> np.ndarray:
+        """(T, N, 3) float64 :meth:`posed_world` of every frame."""
+        return np.stack([self.posed_world(t, weights) for t in range(self.num_frames)])
+
     def posed_camera(self) -> np.ndarray:
         """(T, N, 3) float64 posed vertices in each frame's OpenCV camera frame: root_t @ X_n(t)."""
         out = np.empty((self.num_frames, self.verts.shape[0], 3))
@@ -356,9 +360,12 @@ def top_k_error(rig: Rig, k: int) -> tuple[float, float]:
     """
     idx, val = top_k_weights(rig.weights, k)
     dense = dense_weights(idx, val, rig.num_bones)
-    err = 0.0
-    for t in range(rig.num_frames):
-        err = max(err, float(np.linalg.norm(rig.posed_object(t) - rig.posed_object(t, dense), axis=1).max()))
+    return max_distance(rig, rig.posed_world_frames(), rig.posed_world_frames(dense))
+
+
+def max_distance(rig: Rig, a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """Largest distance between corresponding points of a and b, and it over the bbox diagonal."""
+    err = float(np.linalg.norm(a - b, axis=-1).max())
     return err, err / max(rig.bbox_diagonal(), 1e-30)
 
 

@@ -28,7 +28,7 @@ import numpy as np
 from tqdm import tqdm
 
 from s3o_warp.errors import InputError
-from s3o_warp.export.rig import Rig, atomic_path, decompose_rigid, dense_weights, top_k_error, top_k_weights
+from s3o_warp.export.rig import Rig, atomic_path, decompose_rigid, dense_weights, max_distance, top_k_weights
 
 logger = logging.getLogger(__name__)
 
@@ -98,9 +98,13 @@ def camera_apertures(K: np.ndarray, image_size: tuple[int, int], horizontal_aper
 
 
 def _vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(N, 3) float32 unit area-weighted vertex normals (trimesh); +Y for vertices in no face."""
     import trimesh
 
-    return np.asarray(trimesh.Trimesh(points, faces, process=False).vertex_normals, dtype=np.float32)
+    n = np.array(trimesh.Trimesh(points, faces, process=False).vertex_normals, dtype=np.float64)
+    bad = ~(np.abs(np.linalg.norm(n, axis=1) - 1.0) < 1e-3)  # vertices in no face: any unit vector
+    n[bad] = (0.0, 1.0, 0.0)
+    return n.astype(np.float32)
 
 
 def _extent(points: np.ndarray):
@@ -204,9 +208,10 @@ def export_usd(
     stage.SetDefaultPrim(world.GetPrim())
     Usd.ModelAPI(world.GetPrim()).SetKind("component")
 
-    posed = [rig.posed_world(t) for t in range(t_count)]
-    cam_pts = rig.posed_camera()
-    depth = (float(cam_pts[..., 2].min()), float(cam_pts[..., 2].max()))
+    posed = rig.posed_world_frames()
+    cam_from_world = rig.root @ np.linalg.inv(rig.world_from_object)
+    z = np.einsum("tnj,tj->tn", posed, cam_from_world[:, 2, :3]) + cam_from_world[:, 2, 3:]
+    depth = (float(z.min()), float(z.max()))
     rest = rig.verts.astype(np.float64) @ rig.world_from_object[:3, :3].T + rig.world_from_object[:3, 3]
 
     if baked:
@@ -255,10 +260,10 @@ def export_usd(
         binding.CreateJointWeightsPrimvar(False, k).Set(Vt.FloatArray.FromNumpy(val.reshape(-1).astype(np.float32)))
         binding.CreateGeomBindTransformAttr(_m4(np.eye(4)))
         ext = skel_root.CreateExtentAttr()
-        dense = dense_weights(idx, val, rig.num_bones)
+        posed_k = rig.posed_world_frames(dense_weights(idx, val, rig.num_bones))
         for t in range(t_count):
-            ext.Set(_extent(rig.posed_world(t, dense)), t)
-        err = top_k_error(rig, k)
+            ext.Set(_extent(posed_k[t]), t)
+        err = max_distance(rig, posed, posed_k)
 
     _define_camera(stage, "/World/Camera", rig, depth)
     with atomic_path(path) as tmp:
