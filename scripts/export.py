@@ -28,7 +28,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("run_dir", type=Path, help="run directory holding canonical.ply, skeleton.json, motion.npz")
     parser.add_argument("--out", type=Path, default=None, help="one output file: .usda, .usdc, .usd or .glb")
     parser.add_argument("--baked", action="store_true", help="USD with skinning baked into time-sampled points")
-    parser.add_argument("--influences", type=int, default=4, help="joints per vertex in the USD skin binding")
+    parser.add_argument("--influences", type=int, default=4, help="joints per vertex in the USD skin binding (glTF always stores the top 4)")
     parser.add_argument("--meters-per-unit", type=float, default=1.0, help="the USD stage's metersPerUnit")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
