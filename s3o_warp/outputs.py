@@ -63,7 +63,7 @@ def rig_from_model(fitter):
         frame_names=list(d.frame_names),
         joints=joints,
         joint_pairs=pairs,
-        centers=_np(m.bone_centers),
+        centres=_np(m.bone_centers),
         precisions=precisions,
     )
 

@@ -70,23 +70,34 @@ def overlay_video(run: Path, rig, sequence, fps: float) -> Path:
     return _write_video(out, run / "renders" / "overlay.mp4", fps)
 
 
+def posed_bone_centres(rig, t: int) -> np.ndarray:
+    """Camera-space position of every bone centre at frame t, ``(B, 3)`` (each moved by its own bone)."""
+    c = rig.centres if rig.centres is not None else rig.bind[:, :3, 3]
+    ch = np.concatenate([c, np.ones((len(c), 1))], 1)
+    obj = np.einsum("bij,bj->bi", rig.bone_motion[t], ch)
+    return (obj @ rig.root[t].T)[:, :3]
+
+
 def skeleton_overlay(run: Path, rig, sequence, frame: int = 0) -> Path | None:
-    """The posed joints and bones drawn over one input frame (PNG)."""
+    """Bones (centre to joint segments) and joints of the fit drawn over one input frame (PNG)."""
     if rig.joints is None or rig.joint_pairs is None or len(rig.joints) == 0:
         return None
-    img = sequence.image(frame).copy()
-    jc = rig.joints_camera()[frame]
+    img = np.ascontiguousarray(sequence.image(frame).copy())
     K = rig.K[frame]
-    p = (K @ jc.T).T
-    p = p[:, :2] / p[:, 2:3]
-    bc = rig.bone_centers_camera()[frame] if hasattr(rig, "bone_centers_camera") else None
+
+    def px(p3):
+        q = K @ p3
+        return int(round(q[0] / q[2])), int(round(q[1] / q[2]))
+
+    jc = rig.joints_camera()[frame]
+    bc = posed_bone_centres(rig, frame)
     for j, (a, b) in enumerate(rig.joint_pairs):
-        if bc is not None:
-            for bone in (a, b):
-                q = K @ bc[bone]
-                cv2.line(img, tuple(int(v) for v in p[j]), (int(q[0] / q[2]), int(q[1] / q[2])), (255, 200, 0), 2)
-    for q in p:
-        cv2.circle(img, (int(q[0]), int(q[1])), 4, (255, 0, 0), -1)
+        for bone in (a, b):
+            cv2.line(img, px(jc[j]), px(bc[bone]), (255, 200, 0), 2, cv2.LINE_AA)
+    for p3 in bc:
+        cv2.circle(img, px(p3), 3, (0, 160, 255), -1, cv2.LINE_AA)
+    for p3 in jc:
+        cv2.circle(img, px(p3), 4, (255, 0, 0), -1, cv2.LINE_AA)
     path = run / "renders" / "skeleton.png"
     tmp = path.with_name("skeleton.tmp.png")
     cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
