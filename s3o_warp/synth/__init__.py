@@ -1,2 +1,19 @@
-"""Synthetic sequences with ground truth: a procedural quadruped or a skinned glTF, rendered in the
-input contract (see :mod:`s3o_warp.synth.sequence` for the folder format)."""
+"""Synthetic sequences with ground truth: a procedural quadruped or a skinned glTF model, rendered
+with the project's rasteriser into the input contract (folder format: :mod:`s3o_warp.synth.sequence`).
+
+Public API:
+    make_sequence(out_dir, source="quadruped" | path.glb, clip=None, frames=48, fps=24, size=(W, H), ...)
+    build_quadruped(frames, fps, seed, ...) -> AnimatedMesh
+    load_gltf(path, clip=None, fps=30, frames=None) -> AnimatedMesh
+"""
+
+from .camera import camera_path, intrinsics, look_at
+from .gltf import clip_names, gltf_keypoints, load_gltf
+from .model import AnimatedMesh, vertex_normals
+from .quadruped import build_quadruped, keypoint_vertices
+from .sequence import Shot, keypoint_visibility, make_sequence
+
+__all__ = [
+    "AnimatedMesh", "Shot", "build_quadruped", "camera_path", "clip_names", "gltf_keypoints", "intrinsics",
+    "keypoint_vertices", "keypoint_visibility", "load_gltf", "look_at", "make_sequence", "vertex_normals",
+]

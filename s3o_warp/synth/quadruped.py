@@ -66,7 +66,7 @@ _KEYPOINTS: list[tuple[str, str, tuple[float, float, float]]] = [
     ("withers", "withers", (0.0, 0.25, 0.0)),
     ("throat", "neck", (0.12, -0.05, 0.0)),
     ("tail_base", "tail_base", (0.0, 0.1, 0.0)),
-    ("tail_tip", "tail_tip", (-0.05, -0.02, 0.0)),
+    ("tail_tip", "tail_tip", (0.0, 0.0, 0.0)),
 ]
 for _leg, _side in (("fl", -1.0), ("fr", 1.0), ("bl", -1.0), ("br", 1.0)):
     _up = "shoulder" if _leg[0] == "f" else "hip"
@@ -159,8 +159,10 @@ def skinning_weights(verts: np.ndarray, joints: np.ndarray, parents: np.ndarray,
     for k, c in enumerate(children):
         w[:, parents[c]] += seg_w[:, k]
     if top_k < w.shape[1]:
-        cut = np.partition(w, -top_k, axis=1)[:, -top_k][:, None]
-        w = np.where(w >= cut, w, 0.0)
+        keep = np.argpartition(w, -top_k, axis=1)[:, -top_k:]
+        kept = np.zeros_like(w)
+        np.put_along_axis(kept, keep, np.take_along_axis(w, keep, axis=1), axis=1)
+        w = kept
     return (w / w.sum(1, keepdims=True)).astype(np.float32)
 
 
