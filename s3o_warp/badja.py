@@ -58,7 +58,8 @@ def _read_badja(badja_json) -> list:
         return badja_json
     data = read_json(badja_json, "BADJA file", "pass a BADJA joint_annotations/<animal>.json file")
     if not isinstance(data, list):
-        raise InputError(f"{badja_json}: expected a JSON list of per-frame annotations (BADJA format), got {type(data).__name__}")
+        raise InputError(f"{badja_json}: expected a JSON list of per-frame annotations (BADJA format), "
+                         f"got {type(data).__name__}")
     return data
 
 
@@ -94,14 +95,17 @@ def badja_to_keypoints(
         h, w = (int(v) for v in frame_size)
         sh, sw = (int(v) for v in source_size)
     except (TypeError, ValueError):
-        raise InputError(f"badja_to_keypoints(): frame_size and source_size must be (H, W) pairs of integers, got {frame_size}, {source_size}") from None
+        raise InputError(f"badja_to_keypoints(): frame_size and source_size must be (H, W) pairs of integers, "
+                         f"got {frame_size}, {source_size}") from None
     if min(h, w, sh, sw) <= 0:
-        raise InputError(f"badja_to_keypoints(): sizes must be positive, got frame_size={frame_size}, source_size={source_size}")
+        raise InputError(f"badja_to_keypoints(): sizes must be positive, "
+                         f"got frame_size={frame_size}, source_size={source_size}")
     slots = list(BADJA_ANNOTATED) if annotated_only else list(range(len(BADJA_JOINT_NAMES)))
     frames: dict[str, list] = {}
     for n, entry in enumerate(data):
         if not isinstance(entry, dict) or not {"image_path", "joints", "visibility"} <= set(entry):
-            raise InputError(f"{src}: entry {n} lacks image_path/joints/visibility; pass an unmodified BADJA joint_annotations file")
+            raise InputError(f"{src}: entry {n} lacks image_path/joints/visibility; "
+                             "pass an unmodified BADJA joint_annotations file")
         joints = np.asarray(entry["joints"], dtype=np.float64)
         vis = np.asarray(entry["visibility"], dtype=bool)
         if joints.shape != (len(BADJA_JOINT_NAMES), 2) or vis.shape != (len(BADJA_JOINT_NAMES),):
@@ -145,7 +149,8 @@ def frame_size_of(frames_dir) -> tuple[int, int]:
 
 def main(argv=None) -> int:
     """``python -m s3o_warp.badja IN.json OUT.json (--frames DIR | --frame-size H W)``."""
-    ap = argparse.ArgumentParser(prog="python -m s3o_warp.badja", description="Convert BADJA joint annotations to keypoints.json.")
+    ap = argparse.ArgumentParser(prog="python -m s3o_warp.badja",
+                                 description="Convert BADJA joint annotations to keypoints.json.")
     ap.add_argument("badja_json", help="BADJA joint_annotations/<animal>.json")
     ap.add_argument("out", help="keypoints.json to write")
     size = ap.add_mutually_exclusive_group(required=True)

@@ -12,7 +12,7 @@ What is scored (DESIGN.md, "Data contracts"):
   image file stems; optional ``joints_cam`` (T, J, 3) float32 predicted joints in camera space.
 * **Sequence**: ``masks/<stem>.png`` (foreground > 127, or palette index), optional
   ``keypoints.json`` ``{"names": [...], "frames": {"<stem>": [[x, y, visible], ...]}}`` in
-  full-frame pixels, optional ``ground_truth/gt.npz`` (:func:`load_ground_truth`).
+  full-frame pixels, optional ``ground_truth/ground_truth.npz`` (:func:`load_ground_truth`).
 
 Metrics:
 
@@ -33,6 +33,7 @@ Metrics:
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -81,7 +82,7 @@ class Predictions:
 
 @dataclass(frozen=True)
 class GroundTruth:
-    """Synthetic ground truth (``ground_truth/gt.npz``), camera space of each frame.
+    """Synthetic ground truth (``ground_truth/ground_truth.npz``), camera space of each frame.
 
     Attributes:
         verts: float32 (T, V, 3) vertices.
@@ -204,20 +205,29 @@ def _check_faces(faces: np.ndarray, num_verts: int, path) -> None:
     if not np.issubdtype(faces.dtype, np.integer):
         raise InputError(f"{path}: 'faces' must be integers, got {faces.dtype}")
     if faces.min() < 0 or faces.max() >= num_verts:
-        raise InputError(f"{path}: 'faces' index vertices outside [0, {num_verts}) (range {faces.min()}..{faces.max()})")
+        raise InputError(f"{path}: 'faces' index vertices outside [0, {num_verts}) "
+                         f"(range {faces.min()}..{faces.max()})")
+
+
+GT_FILES = ("ground_truth.npz", "gt.npz")
+"""Names of the ground-truth file inside ``ground_truth/`` (``s3o_warp.synth`` writes the first)."""
 
 
 def load_ground_truth(gt) -> GroundTruth:
-    """Read synthetic ground truth: ``ground_truth/gt.npz`` (the folder or the file).
+    """Read synthetic ground truth: ``ground_truth/ground_truth.npz`` or ``gt.npz`` (the folder or file).
 
     Keys read: ``verts`` (T, V, 3) camera space and ``faces`` (F, 3) (required); optional
     ``joints`` (T, J, 3) camera space, ``joint_parents`` (J,), ``joint_names`` (J,),
     ``joint_deforming`` or ``deforming`` (J,) bool (non-deforming joints are dropped when present),
     ``frame_names`` (T,), ``K`` (T, 3, 3) or (3, 3), ``image_size`` (2,). Unknown keys are ignored.
+    Without ``frame_names``, :func:`evaluate_run` names the frames by the sorted mask stems of the
+    sequence when their count matches (``s3o_warp.synth`` writes ``masks/000000.png`` ...), else by
+    order.
     """
     path = Path(gt)
     if path.is_dir():
-        path = path / "gt.npz"
+        found = [path / n for n in GT_FILES if (path / n).is_file()]
+        path = found[0] if found else path / GT_FILES[0]
     d = _load_npz(path, "ground-truth file", "pass the sequence's ground_truth/ folder (written by s3o_warp.synth)")
     verts = np.asarray(_need(d, "verts", path, "vertices (T, V, 3) camera space"), dtype=np.float32)
     if verts.ndim != 3 or verts.shape[-1] != 3 or verts.shape[0] == 0:
@@ -278,7 +288,8 @@ def load_keypoints(path) -> Keypoints:
     path = Path(path)
     data = read_json(path, "keypoints file", "pass a keypoints.json (python -m s3o_warp.badja converts BADJA files)")
     if not isinstance(data, dict) or not isinstance(data.get("frames"), dict):
-        raise InputError(f"{path}: expected {{\"names\": [...], \"frames\": {{stem: [[x, y, visible], ...]}}}}; convert BADJA files with python -m s3o_warp.badja")
+        raise InputError(f"{path}: expected {{\"names\": [...], \"frames\": {{stem: [[x, y, visible], ...]}}}}; "
+                         "convert BADJA files with python -m s3o_warp.badja")
     names = [str(n) for n in data.get("names", [])]
     frames = {}
     for stem, rows in data["frames"].items():
@@ -288,7 +299,8 @@ def load_keypoints(path) -> Keypoints:
         frames[str(stem)] = a
     counts = {a.shape[0] for a in frames.values()}
     if len(counts) > 1:
-        raise InputError(f"{path}: frames have different keypoint counts {sorted(counts)}; every frame needs one row per name")
+        raise InputError(f"{path}: frames have different keypoint counts {sorted(counts)}; "
+                         "every frame needs one row per name")
     P = counts.pop() if counts else len(names)
     if names and len(names) != P:
         raise InputError(f"{path}: {len(names)} names but {P} keypoints per frame")
@@ -314,7 +326,9 @@ def read_mask(path, object_id: int | None = None) -> np.ndarray:
         a = a[..., :3].max(axis=-1)
     if a.dtype == bool:
         return a
-    return a > (127 if a.dtype == np.uint8 else np.iinfo(a.dtype).max // 2 if np.issubdtype(a.dtype, np.integer) else 0.5)
+    if a.dtype == np.uint16:
+        return a > 32767
+    return a > (127 if np.issubdtype(a.dtype, np.integer) else 0.5)
 
 
 def load_masks(masks_dir, frame_names: list[str], image_size: tuple[int, int] | None = None,
@@ -574,11 +588,6 @@ class Similarity:
         return self.scale * np.asarray(x, dtype=np.float64) @ self.rotation.T + self.translation
 
 
-def _framed(points: list[np.ndarray], gap: float) -> np.ndarray:
-    """Stack per-frame point sets into 4-D points whose 4th coordinate keeps frames ``gap`` apart."""
-    return np.concatenate([np.c_[p, np.full(len(p), t * gap)] for t, p in enumerate(points)])
-
-
 def align_similarity(pred_points: list[np.ndarray], gt_points: list[np.ndarray], iters: int = 50,
                      init_scale: float | None = None) -> tuple[Similarity, dict]:
     """One similarity for a whole sequence: median-depth scale, then symmetric ICP (Umeyama steps).
@@ -602,31 +611,35 @@ def align_similarity(pred_points: list[np.ndarray], gt_points: list[np.ndarray],
         zp, zg = np.median(P[:, 2]), np.median(G[:, 2])
         init_scale = float(zg / zp) if zp > 0 and zg > 0 else 1.0
     sim = Similarity(float(init_scale), np.eye(3), np.zeros(3))
-    extent = float(np.ptp(np.concatenate([G, sim(P)]), axis=0).max()) + 1.0
-    gap = 1e3 * extent
-    gt4 = _framed(gt_points, gap)
-    tree_g = cKDTree(gt4)
-    frame_of_p = np.concatenate([np.full(len(p), t) for t, p in enumerate(pred_points)])
+    gt_trees = [cKDTree(g) for g in gt_points]
+    p_off = np.cumsum([0] + [len(p) for p in pred_points])
+    g_off = np.cumsum([0] + [len(g) for g in gt_points])
     best, best_cost, cost0, done = sim, math.inf, None, 0
     for it in range(iters + 1):
         Pa = sim(P)
-        pa4 = np.c_[Pa, frame_of_p * gap]
-        d1, i1 = tree_g.query(pa4)
-        d2, i2 = cKDTree(pa4).query(gt4)
+        d1, i1, d2, i2 = [], [], [], []
+        for t, tree in enumerate(gt_trees):  # nearest neighbours within the same frame only
+            pa = Pa[p_off[t]:p_off[t + 1]]
+            d, i = tree.query(pa)
+            d1.append(d)
+            i1.append(i + g_off[t])
+            d, i = cKDTree(pa).query(gt_points[t])
+            d2.append(d)
+            i2.append(i + p_off[t])
+        d1, i1, d2, i2 = (np.concatenate(x) for x in (d1, i1, d2, i2))
         cost = 0.5 * (d1.mean() + d2.mean())
         if cost0 is None:
             cost0 = cost
         improved = cost < best_cost * (1.0 - 1e-6)
         if cost < best_cost:
             best, best_cost = sim, cost
-        if not improved and it > 0:
-            break
-        if it == iters:
+        if (not improved and it > 0) or it == iters:
             break
         s, R, t = umeyama(np.concatenate([P, P[i2]]), np.concatenate([G[i1], G]))
         sim = Similarity(s, R, t)
         done = it + 1
-    return best, {"init_scale": float(init_scale), "iterations": done, "cost_init": float(cost0), "cost": float(best_cost)}
+    info = {"init_scale": float(init_scale), "iterations": done, "cost_init": float(cost0), "cost": float(best_cost)}
+    return best, info
 
 
 def chamfer_fscore(pred: np.ndarray, gt: np.ndarray, threshold: float) -> dict:
@@ -657,7 +670,7 @@ def bbox_diagonal(verts: np.ndarray) -> np.ndarray:
 
 def shape_metrics(pred_verts: np.ndarray, pred_faces: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray,
                   n_points: int = 5000, fscore_ratio: float = 0.02, icp_iters: int = 50,
-                  icp_points: int = 20000, seed: int = 0) -> tuple[dict, Similarity]:
+                  icp_points: int = 10000, seed: int = 0) -> tuple[dict, Similarity]:
     """Chamfer and F-score per frame after one sequence-wide similarity alignment.
 
     Args:
@@ -696,7 +709,8 @@ def shape_metrics(pred_verts: np.ndarray, pred_faces: np.ndarray, gt_verts: np.n
     out["chamfer_per_frame"] = [r["chamfer"] for r in rows]
     out["fscore_per_frame"] = [r["fscore"] for r in rows]
     out["fscore_ratio"] = fscore_ratio
-    out["alignment"] = {"scale": sim.scale, "rotation": sim.rotation.tolist(), "translation": sim.translation.tolist(), **info}
+    out["alignment"] = {"scale": sim.scale, "rotation": sim.rotation.tolist(),
+                        "translation": sim.translation.tolist(), **info}
     return out, sim
 
 
@@ -720,7 +734,8 @@ def skeleton_distance(pred_joints: np.ndarray, gt_joints: np.ndarray, diag: np.n
     if pred_joints.shape[0] != T:
         raise ValueError(f"skeleton_distance(): {pred_joints.shape[0]} predicted frames but {T} ground-truth frames")
     if Jp == 0 or J == 0:
-        return {"distance": float("nan"), "distance_pred_to_gt": float("nan"), "per_frame": [], "gt_joints": J, "pred_joints": Jp}
+        return {"distance": float("nan"), "distance_pred_to_gt": float("nan"), "per_frame": [],
+                "gt_joints": J, "pred_joints": Jp}
     pj = sim(pred_joints) if sim is not None else np.asarray(pred_joints, dtype=np.float64)
     d = np.linalg.norm(np.asarray(gt_joints, dtype=np.float64)[:, :, None] - pj[:, None], axis=-1)  # (T, J, Jp)
     norm = np.asarray(diag, dtype=np.float64)
@@ -746,7 +761,7 @@ def _pair_frames(pred_names: list[str], gt: GroundTruth, where: Path) -> tuple[n
         return np.array(pi), np.array([pos[pred_names[i]] for i in pi])
     if gt.verts.shape[0] != len(pred_names):
         raise InputError(f"{gt.source}: has {gt.verts.shape[0]} frames and no frame_names, but {where} has "
-                         f"{len(pred_names)}; add frame_names to gt.npz or score the full sequence")
+                         f"{len(pred_names)}; add frame_names to the ground-truth file or score the full sequence")
     idx = np.arange(len(pred_names))
     return idx, idx
 
@@ -779,7 +794,7 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
         sequence: sequence folder; supplies ``masks/``, ``keypoints.json`` and ``ground_truth/``
             unless given explicitly.
         keypoints: a keypoints.json (default ``<sequence>/keypoints.json`` when present).
-        ground_truth: ``ground_truth/`` folder or ``gt.npz`` (default ``<sequence>/ground_truth``).
+        ground_truth: ``ground_truth/`` folder or its ``.npz`` (default ``<sequence>/ground_truth``).
         masks: masks folder (default ``<sequence>/masks``).
         object_id: palette index of the object in palette masks.
         alpha: PCK-T threshold as a fraction of sqrt(mask area).
@@ -871,6 +886,10 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
     # ---- 3D shape and skeleton against synthetic ground truth ----
     if ground_truth is not None:
         gt = load_ground_truth(ground_truth)
+        if gt.frame_names is None and masks_dir is not None and masks_dir.is_dir():
+            stems = sorted(p.stem for p in masks_dir.iterdir() if p.suffix.lower() == ".png")
+            if len(stems) == gt.verts.shape[0]:
+                gt = dataclasses.replace(gt, frame_names=stems)
         pi, gi = _pair_frames(pred.frame_names, gt, pred.source)
         shape, sim = shape_metrics(pred.verts_cam[pi], pred.faces, gt.verts[gi], gt.faces, n_points=n_points,
                                    fscore_ratio=fscore_ratio, icp_iters=icp_iters, seed=seed)
@@ -909,7 +928,8 @@ def format_table(metrics: dict) -> str:
                      f"{m['correct']}/{m['total']} keypoints, {m['pairs']} pairs of {m['frames']} frames"))
     if "shape_3d" in metrics:
         m = metrics["shape_3d"]
-        rows.append(("Chamfer / bbox diag", f(m["chamfer"], ".5f"), f"mean over {m['frames']} frames, scale {m['alignment']['scale']:.4g}"))
+        rows.append(("Chamfer / bbox diag", f(m["chamfer"], ".5f"),
+                     f"mean over {m['frames']} frames, scale {m['alignment']['scale']:.4g}"))
         rows.append((f"F-score@{100 * m['fscore_ratio']:g}%", f(m["fscore"], ".4f"),
                      f"precision {f(m['precision'], '.3f')}, recall {f(m['recall'], '.3f')}"))
     if "skeleton" in metrics:

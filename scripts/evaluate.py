@@ -22,9 +22,10 @@ from s3o_warp.metrics import evaluate_run, format_table, write_metrics
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", help="run directory (with motion.npz) or the motion.npz file")
-    ap.add_argument("--sequence", required=True, help="sequence folder (masks/, optional keypoints.json and ground_truth/)")
+    ap.add_argument("--sequence", required=True,
+                    help="sequence folder (masks/, optional keypoints.json and ground_truth/)")
     ap.add_argument("--keypoints", help="keypoints.json (default: SEQ/keypoints.json when present)")
-    ap.add_argument("--ground-truth", help="ground_truth/ folder or gt.npz (default: SEQ/ground_truth when present)")
+    ap.add_argument("--ground-truth", help="ground_truth/ folder or its .npz (default: SEQ/ground_truth when present)")
     ap.add_argument("--masks", help="masks folder (default: SEQ/masks), e.g. davis/Annotations/480p/cows")
     ap.add_argument("--object-id", type=int, help="palette index of the object in palette (DAVIS-2017) masks")
     ap.add_argument("--alpha", type=float, default=0.2, help="PCK-T threshold as a fraction of sqrt(mask area)")

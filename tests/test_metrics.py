@@ -329,6 +329,28 @@ def test_frozen_prediction_scores_clearly_lower(scene):
     assert m["skeleton"]["distance"] > 0.02
 
 
+def test_scores_a_synth_sequence(tmp_path):
+    """What s3o_warp.synth writes (ground_truth/ground_truth.npz, no frame names) is read and scored."""
+    synth = pytest.importorskip("s3o_warp.synth")
+    _rasterize()
+    seq = synth.make_sequence(tmp_path / "seq", frames=5, size=(80, 64), progress=False)
+    gt = M.load_ground_truth(seq / "ground_truth")
+    assert gt.frame_names is None and gt.joints is not None
+    names = np.array(sorted(p.stem for p in (seq / "masks").iterdir()))
+    scores = {}
+    for name, sel in (("self", np.arange(5)), ("frozen", np.zeros(5, int))):
+        run = tmp_path / name
+        run.mkdir()
+        np.savez(run / "motion.npz", verts_cam=gt.verts[sel], faces=gt.faces, K=gt.K, image_size=np.array(gt.image_size),
+                 frame_names=names, joints_cam=gt.joints[sel])
+        scores[name] = M.evaluate_run(run, seq, progress=False, n_points=1000)
+    good, bad = scores["self"], scores["frozen"]
+    assert good["mask_iou"]["mean"] == 1.0 and good["pck_t"]["pck"] == 100.0 and good["skipped"] == {}
+    assert good["shape_3d"]["chamfer"] < 1e-6 and good["shape_3d"]["fscore"] == 1.0 and good["skeleton"]["distance"] < 1e-5
+    assert bad["mask_iou"]["mean"] < 0.9 and bad["shape_3d"]["fscore"] < 0.9 and bad["skeleton"]["distance"] > 0.01
+    assert bad["pck_t"]["pck"] < good["pck_t"]["pck"]
+
+
 def test_pck_of_a_run_matches_naive_loops(scene):
     """evaluate_run's PCK-T (chunked renders, KD-tree lookups) equals the loop twin on full renders."""
     kp, fi, bary, verts, faces = scene["kp"], scene["fi"], scene["bary"], scene["verts"], scene["faces"]
