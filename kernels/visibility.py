@@ -71,6 +71,7 @@ class VisibilityContext:
             raise ValueError(f"VisibilityContext(): faces indices must be >= 0, got min {int(faces.min())}")
         self.device = faces.device
         self.faces = faces.detach().to(torch.int32).contiguous().clone()
+        self._max_index = int(self.faces.max()) if self.faces.numel() else -1  # one sync, here only
         self.mesh: wp.Mesh | None = None
         self.num_builds = 0
         self.num_refits = 0
@@ -117,9 +118,9 @@ class VisibilityContext:
         if not 0.0 <= eps < 1.0:
             raise ValueError(f"{name}(): eps must lie in [0, 1) (a relative distance tolerance), got {eps}")
         num_frames, num_verts = verts.shape[0], verts.shape[1]
-        if self.faces.numel() and int(self.faces.max()) >= num_verts:
+        if self._max_index >= num_verts:
             raise ValueError(
-                f"{name}(): faces index vertex {int(self.faces.max())} but verts has only {num_verts} per frame"
+                f"{name}(): faces index vertex {self._max_index} but verts has only {num_verts} per frame"
             )
         verts = verts.detach().contiguous()
         visible = torch.zeros((num_frames, num_verts), dtype=torch.bool, device=self.device)
