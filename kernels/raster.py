@@ -29,6 +29,7 @@ from .raster_forward import (
     rasterize_faces_kernel,
     render_soft_silhouette_kernel,
     render_soft_silhouette_naive_kernel,
+    setup_raster_faces_kernel,
 )
 
 __all__ = ["soft_silhouette", "soft_silhouette_naive", "rasterize", "interpolate"]
@@ -325,11 +326,18 @@ def rasterize(verts, faces, K, image_size, tile_size: int = 16, near: float = 1e
     xy, z, front = _project(verts, faces32, K, near)
     with torch.no_grad():
         bins = _bin_faces(xy.detach(), faces32, front, H, W, int(tile_size), 0.0)
+        F = faces32.shape[0]
+        rows = torch.empty((T, F, 3, 3), dtype=torch.float32, device=verts.device)
+        inv_z = torch.empty((T, F, 3), dtype=torch.float32, device=verts.device)
         face_index = torch.empty((T, H, W), dtype=torch.int32, device=verts.device)
+        dev = wp_device(verts)
         with stream_of(verts):
-            wp.launch(rasterize_faces_kernel, dim=(T, H, W), device=wp_device(verts),
-                      inputs=[to_wp(xy, wp.vec2), to_wp(z.contiguous()), to_wp(faces32, wp.vec3i), to_wp(bins.start),
-                              to_wp(bins.count), to_wp(bins.faces), int(tile_size), bins.ntx, bins.bins_per_frame],
+            wp.launch(setup_raster_faces_kernel, dim=(T, F), device=dev,
+                      inputs=[to_wp(xy, wp.vec2), to_wp(z.contiguous()), to_wp(faces32, wp.vec3i), to_wp(front)],
+                      outputs=[to_wp(rows, wp.mat33), to_wp(inv_z, wp.vec3)])
+            wp.launch(rasterize_faces_kernel, dim=(T, H, W), device=dev,
+                      inputs=[to_wp(rows, wp.mat33), to_wp(inv_z, wp.vec3), to_wp(bins.start), to_wp(bins.count),
+                              to_wp(bins.faces), int(tile_size), bins.ntx, bins.bins_per_frame],
                       outputs=[to_wp(face_index)])
     fg = face_index >= 0
     t_idx, rows, cols = fg.nonzero(as_tuple=True)

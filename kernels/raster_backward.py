@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .raster_forward import triangle_sq_dist_func
+from .raster_forward import outside_box_func, triangle_sq_dist_func
 
 wp.set_module_options({"enable_backward": False})
 
@@ -124,9 +124,7 @@ def soft_silhouette_grad_naive_kernel(
         a = xy[t, i[0]]
         b = xy[t, i[1]]
         c = xy[t, i[2]]
-        if p[0] < wp.min(wp.min(a[0], b[0]), c[0]) - radius or p[0] > wp.max(wp.max(a[0], b[0]), c[0]) + radius:
-            continue
-        if p[1] < wp.min(wp.min(a[1], b[1]), c[1]) - radius or p[1] > wp.max(wp.max(a[1], b[1]), c[1]) + radius:
+        if outside_box_func(p, a, b, c, radius):
             continue
         da, db, dc = coverage_sq_dist_grad_func(p, a, b, c, g, inv_sigma, cutoff)
         wp.atomic_add(grad_xy, t, i[0], da)

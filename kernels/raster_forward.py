@@ -60,6 +60,14 @@ def triangle_sq_dist_func(p: wp.vec2, a: wp.vec2, b: wp.vec2, c: wp.vec2):
 
 
 @wp.func
+def outside_box_func(p: wp.vec2, a: wp.vec2, b: wp.vec2, c: wp.vec2, radius: float):
+    """True when p lies outside the bbox of triangle abc widened by radius (a cheap early-out)."""
+    if p[0] < wp.min(wp.min(a[0], b[0]), c[0]) - radius or p[0] > wp.max(wp.max(a[0], b[0]), c[0]) + radius:
+        return True
+    return p[1] < wp.min(wp.min(a[1], b[1]), c[1]) - radius or p[1] > wp.max(wp.max(a[1], b[1]), c[1]) + radius
+
+
+@wp.func
 def log_one_minus_coverage_func(p: wp.vec2, a: wp.vec2, b: wp.vec2, c: wp.vec2, inv_sigma: float, cutoff: float):
     """log(1 - D) for one face, D = sigmoid(delta d^2 / sigma); 0 when the face is left out
     (outside with d^2 >= cutoff). Stable: log(1 - D) = -softplus(x)."""
@@ -191,19 +199,55 @@ def render_soft_silhouette_naive_kernel(
         a = xy[t, i[0]]
         b = xy[t, i[1]]
         cc = xy[t, i[2]]
-        if p[0] < wp.min(wp.min(a[0], b[0]), cc[0]) - radius or p[0] > wp.max(wp.max(a[0], b[0]), cc[0]) + radius:
-            continue
-        if p[1] < wp.min(wp.min(a[1], b[1]), cc[1]) - radius or p[1] > wp.max(wp.max(a[1], b[1]), cc[1]) + radius:
+        if outside_box_func(p, a, b, cc, radius):
             continue
         acc += log_one_minus_coverage_func(p, a, b, cc, inv_sigma, cutoff)
     log_trans[t, r, c] = acc
 
 
+@wp.func
+def edge_row_func(u: wp.vec2, v: wp.vec2, inv_area2: float):
+    """Row (A, B, C) of the edge function of edge u -> v over twice the signed area:
+    l(p) = A p.x + B p.y + C = cross(v - u, p - u) / area2."""
+    e = v - u
+    return wp.vec3(-e[1] * inv_area2, e[0] * inv_area2, (e[1] * u[0] - e[0] * u[1]) * inv_area2)
+
+
 @wp.kernel
-def rasterize_faces_kernel(
+def setup_raster_faces_kernel(
     xy: wp.array2d(dtype=wp.vec2),
     z: wp.array2d(dtype=float),
     faces: wp.array(dtype=wp.vec3i),
+    front: wp.array2d(dtype=wp.int32),
+    # outputs
+    bary_rows: wp.array2d(dtype=wp.mat33),
+    inv_z: wp.array2d(dtype=wp.vec3),
+):
+    """Per (frame, face): rows of the screen barycentrics l = M (x, y, 1) and 1 / z of the
+    vertices, so the per-pixel test is 9 multiply-adds. Faces behind the camera or of zero area get
+    a matrix that covers no pixel (l = -1)."""
+    t, f = wp.tid()
+    i = faces[f]
+    a = xy[t, i[0]]
+    b = xy[t, i[1]]
+    c = xy[t, i[2]]
+    area2 = cross2_func(b - a, c - a)
+    if front[t, f] == 0 or area2 == 0.0:
+        bary_rows[t, f] = wp.mat33(0.0, 0.0, -1.0, 0.0, 0.0, -1.0, 0.0, 0.0, -1.0)
+        inv_z[t, f] = wp.vec3(0.0)
+        return
+    s = 1.0 / area2
+    r0 = edge_row_func(b, c, s)
+    r1 = edge_row_func(c, a, s)
+    r2 = edge_row_func(a, b, s)
+    bary_rows[t, f] = wp.mat33(r0[0], r0[1], r0[2], r1[0], r1[1], r1[2], r2[0], r2[1], r2[2])
+    inv_z[t, f] = wp.vec3(1.0 / z[t, i[0]], 1.0 / z[t, i[1]], 1.0 / z[t, i[2]])
+
+
+@wp.kernel
+def rasterize_faces_kernel(
+    bary_rows: wp.array2d(dtype=wp.mat33),
+    inv_z: wp.array2d(dtype=wp.vec3),
     bin_start: wp.array(dtype=wp.int32),
     bin_count: wp.array(dtype=wp.int32),
     bin_faces: wp.array(dtype=wp.int32),
@@ -214,30 +258,22 @@ def rasterize_faces_kernel(
     face_index: wp.array3d(dtype=wp.int32),
 ):
     """Z-buffer per pixel: nearest tile face whose projection covers the pixel centre (all screen
-    barycentrics >= 0, non-zero area), perspective-correct depth; strict < keeps the lower face id
-    on equal depth because tile lists are sorted by face id. -1 for background."""
+    barycentrics >= 0, non-zero area), perspective-correct depth 1 / sum_i l_i / z_i; strict <
+    keeps the lower face id on equal depth because tile lists are sorted by face id. -1 for
+    background."""
     t, r, c = wp.tid()
     bn = t * bins_per_frame + (r // tile) * ntx + c // tile
-    p = wp.vec2(float(c), float(r))
+    p = wp.vec3(float(c), float(r), 1.0)
     best_z = float(1.0e38)
     best_f = int(-1)
     start = bin_start[bn]
     for k in range(start, start + bin_count[bn]):
         f = bin_faces[k]
-        i = faces[f]
-        a = xy[t, i[0]]
-        b = xy[t, i[1]]
-        cc = xy[t, i[2]]
-        area2 = cross2_func(b - a, cc - a)
-        if area2 == 0.0:
-            continue
-        l0 = cross2_func(cc - b, p - b) / area2
-        l1 = cross2_func(a - cc, p - cc) / area2
-        l2 = cross2_func(b - a, p - a) / area2
-        if l0 >= 0.0 and l1 >= 0.0 and l2 >= 0.0:
-            inv_z = l0 / z[t, i[0]] + l1 / z[t, i[1]] + l2 / z[t, i[2]]
-            if inv_z > 0.0:
-                zz = 1.0 / inv_z
+        lam = bary_rows[t, f] * p
+        if lam[0] >= 0.0 and lam[1] >= 0.0 and lam[2] >= 0.0:
+            iz = wp.dot(lam, inv_z[t, f])
+            if iz > 0.0:
+                zz = 1.0 / iz
                 if zz < best_z:
                     best_z = zz
                     best_f = f
