@@ -24,7 +24,10 @@ def init() -> None:
         return
     with _init_lock:
         if not _initialised:
-            wp.config.quiet = True
+            import logging
+
+            # Warp >= 1.19 logs its banner and "Module ... load" lines at INFO; keep warnings only.
+            wp.config.log_level = max(wp.config.log_level, logging.WARNING)
             wp.init()
             _initialised = True
 

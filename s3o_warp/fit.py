@@ -322,6 +322,7 @@ class Fitter:
                 bar.update(1)
                 if self.step % self.cfg.motion.log_every == 0 or self.step == n:
                     iou = float(L.soft_iou(sil.detach(), mask).mean())
+                    total = total.detach()
                     rec = {
                         "phase": phase,
                         "step": self.step,
