@@ -3,6 +3,7 @@ rendering with the project's rasteriser, ground truth and the command line."""
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 import json
 from pathlib import Path
@@ -98,20 +99,25 @@ def test_quadruped_rest_pose_and_determinism(quad):
 # glTF: an independent evaluation of the spec formula
 
 
+@functools.lru_cache(maxsize=2)
+def _parse(path: str) -> pygltflib.GLTF2:
+    return pygltflib.GLTF2().load(path)
+
+
 def _spec_skin(path: Path, clip: str | None, times: np.ndarray | None):
     """v' = sum_i w_i * J_i * IBM_i * v, J the joints' global matrices (rest TRS where not animated)."""
-    g = pygltflib.GLTF2().load(str(path))
+    g = _parse(str(path))
     blob = g.binary_blob()
 
     def acc(i):
         a = g.accessors[i]
         bv = g.bufferViews[a.bufferView]
-        dt = {5121: np.uint8, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}[a.componentType]
+        dt = np.dtype({5121: np.uint8, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}[a.componentType])
         n = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}[a.type]
-        stride = bv.byteStride or np.dtype(dt).itemsize * n
-        raw = np.frombuffer(blob, np.uint8, a.count * stride, (bv.byteOffset or 0) + (a.byteOffset or 0))
-        return np.stack([np.frombuffer(raw[k * stride:k * stride + np.dtype(dt).itemsize * n].tobytes(), dt)
-                         for k in range(a.count)])
+        stride = bv.byteStride or dt.itemsize * n
+        start = (bv.byteOffset or 0) + (a.byteOffset or 0)
+        rows = [blob[start + k * stride:start + k * stride + dt.itemsize * n] for k in range(a.count)]
+        return np.frombuffer(b"".join(rows), dt).reshape(a.count, n)
 
     anim = {}
     if clip is not None:

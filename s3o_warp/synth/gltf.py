@@ -486,10 +486,12 @@ def gltf_keypoints(mesh: AnimatedMesh, max_points: int = 20) -> tuple[list[str],
     """Anatomical keypoints of a glTF model from its named deforming joints, as rest vertex indices.
 
     Rules, in priority order (later rules fill up to ``max_points``; repeated vertices dropped):
-    1. ``<joint>_tip`` for end joints of the deforming tree whose name suggests an extremity (foot,
-       hand, paw, hoof, toe, ear, tail, head, nose, jaw, lower leg, forearm): among the vertices
-       whose strongest weight is that joint, the one farthest from the joint (a hoof's sole, an
-       ear's or the tail's tip);
+    1. ``<joint>_tip`` for end joints of the deforming tree (no deforming descendant): if the name
+       suggests an extremity (foot, hand, paw, hoof, toe, ear, tail, head, nose, jaw, lower leg,
+       forearm), the vertex whose strongest weight is that joint farthest from the joint (a toe,
+       an ear's or the tail's tip); for other names, when that joint's skin reaches the ground
+       (within 5 % of the height, +y up), its lowest vertex (a hoof's sole: the Quaternius IK
+       foot bones). Ground-reaching ends come first;
     2. knees (knee, lower leg, forearm, leg02, shin, calf, hock): the rest surface vertex nearest
        to the joint;
     3. the head joint, the first neck and tail joints, then upper legs / shoulders / hips.
@@ -513,11 +515,16 @@ def gltf_keypoints(mesh: AnimatedMesh, max_points: int = 20) -> tuple[list[str],
     def nearest(j: int) -> int:
         return int(np.argmin(np.linalg.norm(rest - mesh.rest_joints[j], axis=1)))
 
-    for j in deform:
-        if j in has_child or not _TIP.search(names[j]):
-            continue
+    ground, height = float(rest[:, 1].min()), float(np.ptp(rest[:, 1]))
+    for j in deform:  # feet of any name: end joints whose skin reaches the ground (y up)
         sel = np.where(owner == j)[0]
-        if sel.size == 0:
+        if j in has_child or _TIP.search(names[j]) or sel.size == 0:
+            continue
+        if rest[sel, 1].min() <= ground + 0.05 * height:
+            picked.append((f"{names[j]}_tip", int(sel[np.argmin(rest[sel, 1])])))
+    for j in deform:
+        sel = np.where(owner == j)[0]
+        if j in has_child or not _TIP.search(names[j]) or sel.size == 0:
             continue
         far = sel[np.argmax(np.linalg.norm(rest[sel] - mesh.rest_joints[j], axis=1))]
         picked.append((f"{names[j]}_tip", int(far)))
