@@ -44,6 +44,13 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as e:
         print(f"s3o-fit: error: {e}", file=sys.stderr)
         return 2
+    except Exception as e:
+        from s3o_warp.fit import FitInterrupted
+
+        if not isinstance(e, FitInterrupted):
+            raise
+        print(f"s3o-fit: {e}; continue with --resume", file=sys.stderr)
+        return 130
     except KeyboardInterrupt:
         print("s3o-fit: interrupted; the last checkpoint is kept, continue with --resume", file=sys.stderr)
         return 130
@@ -73,9 +80,11 @@ def _run(args) -> int:
         out = Path(args.out or Path("runs") / seq.name)
     metrics = fit(seq, out, cfg, device, resume=args.resume)
     log.info("run directory: %s", out.resolve())
-    for k in ("iou_mean", "pck_t"):
-        if k in metrics:
-            log.info("%s: %s", k, metrics[k])
+    iou = (metrics.get("mask_iou") or {}).get("mean")
+    pck = (metrics.get("pck_t") or {}).get("pck")
+    log.info("mask IoU %s, PCK-T %s", f"{iou:.3f}" if iou is not None else "n/a", f"{pck:.1f}" if pck is not None else "n/a")
+    for p in sorted((out / "renders").glob("*")):
+        log.info("render: %s", p)
     return 0
 
 

@@ -176,6 +176,10 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
 PHASES = ("coarse", "warmup", "joint")
 
 
+class FitInterrupted(Exception):
+    """Raised after a stop request (Ctrl-C, SIGTERM) once the checkpoint of the current step is written."""
+
+
 def _atomic_save(obj, path: Path) -> None:
     tmp = path.with_name(path.name + ".tmp")
     torch.save(obj, tmp)
@@ -200,6 +204,11 @@ class Fitter:
         self.t0 = time.perf_counter()
         self.history: list[dict] = []
         self.opt = self._make_optimizer()
+        self._stop = False
+
+    def request_stop(self) -> None:
+        """Ask the loop to checkpoint and stop at the next step boundary (safe from a signal handler)."""
+        self._stop = True
 
     # -- optimiser per phase ------------------------------------------------------------------------
     def _make_optimizer(self) -> torch.optim.Optimizer:
@@ -337,6 +346,10 @@ class Fitter:
                     with open(self.log_file, "a") as fh:
                         fh.write(json.dumps(rec) + "\n")
                     bar.set_postfix(loss=f"{float(total):.4f}", iou=f"{iou:.3f}")
+                if self._stop:
+                    bar.close()
+                    path = self.save_checkpoint()
+                    raise FitInterrupted(f"stopped at {phase} step {self.step}; checkpoint {path}")
                 if self.step % self.cfg.output.checkpoint_every == 0 and self.step < n:
                     self.save_checkpoint()
             bar.close()
@@ -444,8 +457,39 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
     elif (out_dir / "log.jsonl").exists():
         (out_dir / "log.jsonl").unlink()
     if fitter.phase != "done":
-        fitter.run()
+        with _stop_on_signals(fitter):
+            fitter.run()
     return write_outputs(fitter)
+
+
+class _stop_on_signals:
+    """SIGINT / SIGTERM during the loop -> checkpoint at the step boundary, then FitInterrupted."""
+
+    def __init__(self, fitter: Fitter):
+        self.fitter = fitter
+        self.old = {}
+
+    def __enter__(self):
+        import signal
+        import threading
+
+        if threading.current_thread() is not threading.main_thread():
+            return self
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self.old[sig] = signal.getsignal(sig)
+            signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum, frame):
+        log.warning("signal %d: writing a checkpoint and stopping after this step", signum)
+        self.fitter.request_stop()
+
+    def __exit__(self, *exc):
+        import signal
+
+        for sig, h in self.old.items():
+            signal.signal(sig, h)
+        return False
 
 
 def write_outputs(fitter: Fitter) -> dict:
