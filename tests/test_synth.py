@@ -176,6 +176,15 @@ def test_gltf_fox_matches_spec_formula(shared_data):
     assert np.abs(mesh.verts - ref).max() < 1e-5 * scale
     assert np.abs(mesh.verts[1] - mesh.verts[0]).max() > 1e-3 * scale  # the clip animates
     assert mesh.clip_names == ["Survey", "Walk", "Run"]
+    # asking for more frames than the clip has loops it: time k / fps wraps modulo the duration
+    looped = load_gltf(path, clip="Walk", fps=fps, frames=30, to_object_frame=False)
+    g = _parse(str(path))
+    duration = max(g.accessors[s.input].max[0] for s in g.animations[1].samplers) - min(
+        g.accessors[s.input].min[0] for s in g.animations[1].samplers)
+    assert 29 / fps > duration
+    tail = np.arange(24, 30) / fps
+    ref_loop = _spec_skin(path, "Walk", np.mod(tail, duration))
+    assert np.abs(looped.verts[24:] - ref_loop).max() < 1e-5 * scale
     # the object frame is a +90 degree turn about +y: glTF +z (front) -> +x
     turned = load_gltf(path, clip="Walk", fps=fps, frames=frames)
     np.testing.assert_allclose(turned.verts[..., 0], mesh.verts[..., 2], atol=1e-4 * scale)
@@ -336,3 +345,15 @@ def test_cli_writes_contract(tmp_path):
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temp folder left behind
     assert cli.main(["--out", str(out), "--frames", "2", "--size", "40x32"]) == 2  # exists, no --overwrite
     assert cli.main(["--out", str(out), "--frames", "2", "--size", "40x32", "--overwrite"]) == 0
+
+
+def test_vertex_normals_of_a_sphere():
+    import trimesh
+
+    from s3o_warp.synth import vertex_normals
+
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    v, f = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    n = vertex_normals(v, f)
+    assert np.min(np.sum(n * v, 1)) > 0.99  # outward unit normals = positions on the unit sphere
+    np.testing.assert_allclose(vertex_normals(np.stack([v, 2 * v]), f)[1], n, atol=1e-6)  # batched
