@@ -9,7 +9,8 @@ kernels accumulate in dynamic loops over bones, which Warp's generated backward 
 * :func:`blend_skinning` -- ``X_n^t = T_0^t (sum_b W[n, b] T_b^t) X_n^0``. The root is folded into
   the bones in torch first (``M_b^t = [R_0 R_b | R_0 t_b]``, T*B tiny 3x4 products that torch
   differentiates), then a Warp kernel blends ``sum_b W[n, b] M_b^t`` per (frame, vertex) and applies
-  it; ``t_0`` is added last. Backward: per-vertex threads loop over frames and bones for dX and dW;
+  it; ``t_0`` is added last. Backward: per-vertex threads loop over bones and frames for dX and dW
+  (via ``h_nb = sum_t M_tb^T g_tn``, so nothing but the inputs is saved from the forward);
   per-(chunk, frame, bone) threads loop over the chunk's vertices for dM (no atomics; chunk partial
   sums are added in torch; one chunk on the CPU, many on CUDA).
 """
@@ -112,7 +113,6 @@ def blend_vertices_kernel(
     transforms: wp.array2d(dtype=mat34),
     # outputs
     posed: wp.array2d(dtype=wp.vec3),
-    blended: wp.array2d(dtype=mat34),
 ):
     """Per-(frame t, vertex n) thread: A = sum_b W[n, b] M[t, b]; posed[t, n] = A [x_n; 1]."""
     t, n = wp.tid()
@@ -121,38 +121,33 @@ def blend_vertices_kernel(
         a = a + weights[n, b] * transforms[t, b]
     x = verts[n]
     posed[t, n] = a * wp.vec4(x[0], x[1], x[2], 1.0)
-    blended[t, n] = a
 
 
 @wp.kernel
 def grad_blend_vertices_kernel(
     verts: wp.array(dtype=wp.vec3),
+    weights: wp.array2d(dtype=wp.float32),
     transforms: wp.array2d(dtype=mat34),
-    blended: wp.array2d(dtype=mat34),
     grad_posed: wp.array2d(dtype=wp.vec3),
     # outputs
     grad_verts: wp.array(dtype=wp.vec3),
     grad_weights: wp.array2d(dtype=wp.float32),
 ):
-    """Per-vertex thread: dx_n = sum_t A_tn[:, :3]^T g_tn; dW[n, b] = sum_t g_tn . (M_tb [x_n; 1])."""
+    """Per-vertex thread, with h_nb = sum_t M_tb^T g_tn (a 4-vector):
+
+    dW[n, b] = h_nb . [x_n; 1] and dx_n = sum_b W[n, b] h_nb[:3].
+    """
     n = wp.tid()
     x = verts[n]
     xh = wp.vec4(x[0], x[1], x[2], 1.0)
-    gx = wp.vec3()
-    for t in range(grad_posed.shape[0]):
-        g = grad_posed[t, n]
-        a = blended[t, n]
-        gx = gx + wp.vec3(
-            a[0, 0] * g[0] + a[1, 0] * g[1] + a[2, 0] * g[2],
-            a[0, 1] * g[0] + a[1, 1] * g[1] + a[2, 1] * g[2],
-            a[0, 2] * g[0] + a[1, 2] * g[1] + a[2, 2] * g[2],
-        )
-    grad_verts[n] = gx
+    gx = wp.vec4()
     for b in range(transforms.shape[1]):
-        acc = float(0.0)
+        h = wp.vec4()
         for t in range(grad_posed.shape[0]):
-            acc += wp.dot(grad_posed[t, n], transforms[t, b] * xh)
-        grad_weights[n, b] = acc
+            h = h + wp.transpose(transforms[t, b]) * grad_posed[t, n]
+        grad_weights[n, b] = wp.dot(h, xh)
+        gx = gx + weights[n, b] * h
+    grad_verts[n] = wp.vec3(gx[0], gx[1], gx[2])
 
 
 @wp.kernel
@@ -242,28 +237,26 @@ class _SkinningLogitsFn(torch.autograd.Function):
 class _BlendFn(torch.autograd.Function):
     @staticmethod
     def forward(ctx, verts, weights, transforms):
+        ctx.save_for_backward(verts, weights, transforms)
         t, n = transforms.shape[0], verts.shape[0]
         posed = torch.empty((t, n, 3), dtype=torch.float32, device=verts.device)
-        blended = torch.empty((t, n, 3, 4), dtype=torch.float32, device=verts.device)
         with stream_of(verts):
             wp.launch(
                 blend_vertices_kernel,
                 dim=(t, n),
                 inputs=[to_wp(verts, wp.vec3), to_wp(weights), to_wp(transforms, mat34)],
-                outputs=[to_wp(posed, wp.vec3), to_wp(blended, mat34)],
+                outputs=[to_wp(posed, wp.vec3)],
                 device=wp_device(verts),
             )
-        ctx.save_for_backward(verts, weights, transforms, blended)
-        ctx.mark_non_differentiable(blended)
-        return posed, blended
+        return posed
 
     @staticmethod
-    def backward(ctx, grad_posed, _grad_blended):
-        verts, weights, transforms, blended = ctx.saved_tensors
+    def backward(ctx, grad_posed):
+        verts, weights, transforms = ctx.saved_tensors
         t, b, n = transforms.shape[0], transforms.shape[1], verts.shape[0]
         dev = wp_device(verts)
         g = to_wp(grad_posed.contiguous(), wp.vec3)
-        wv = to_wp(verts, wp.vec3)
+        wv, ww = to_wp(verts, wp.vec3), to_wp(weights)
         gv = gw = gm = None
         with stream_of(verts):
             if ctx.needs_input_grad[0] or ctx.needs_input_grad[1]:
@@ -272,7 +265,7 @@ class _BlendFn(torch.autograd.Function):
                 wp.launch(
                     grad_blend_vertices_kernel,
                     dim=n,
-                    inputs=[wv, to_wp(transforms, mat34), to_wp(blended, mat34), g],
+                    inputs=[wv, ww, to_wp(transforms, mat34), g],
                     outputs=[to_wp(gv, wp.vec3), to_wp(gw)],
                     device=dev,
                 )
@@ -282,7 +275,7 @@ class _BlendFn(torch.autograd.Function):
                 wp.launch(
                     grad_blend_transforms_kernel,
                     dim=(count, t, b),
-                    inputs=[wv, to_wp(weights), g, chunk],
+                    inputs=[wv, ww, g, chunk],
                     outputs=[to_wp(part, mat34)],
                     device=dev,
                 )
@@ -359,5 +352,5 @@ def blend_skinning(
     same_device(name, verts, weights, bone_rt, root_rt)
     # Fold the root into the bones: M_b^t = [R_0 R_b | R_0 t_b] (T*B 3x4 products; torch differentiates).
     transforms = torch.matmul(root_rt[:, None, :, :3], bone_rt)
-    posed, _ = _BlendFn.apply(verts.contiguous(), weights.contiguous(), transforms.contiguous())
+    posed = _BlendFn.apply(verts.contiguous(), weights.contiguous(), transforms.contiguous())
     return posed + root_rt[:, None, :, 3]
