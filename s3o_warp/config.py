@@ -209,6 +209,14 @@ def _coerce(key: str, current, value, annotation: str):
             if not isinstance(value, str):
                 raise ValueError
             return value
+        if base.startswith("tuple"):
+            if isinstance(value, str):
+                value = [v for v in value.strip("()[] ").split(",") if v.strip()]
+            n = base.count(",") + 1
+            if not isinstance(value, (list, tuple)) or len(value) != n:
+                raise ValueError
+            kind = float if "float" in base else int
+            return tuple(kind(v) for v in value)
     except (TypeError, ValueError):
         raise ConfigError(
             f"config key '{key}' must be {base}, got {value!r} ({type(value).__name__}); e.g. {key}={current!r}"

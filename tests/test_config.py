@@ -1,0 +1,57 @@
+"""The config tree: presets, TOML round trip, typed overrides and the errors that name the key."""
+
+from __future__ import annotations
+
+import pytest
+
+from s3o_warp.config import PRESETS, Config, make_config, save_toml, to_dict
+from s3o_warp.errors import ConfigError
+
+
+@pytest.mark.parametrize("preset", list(PRESETS))
+def test_every_preset_resolves_and_round_trips(preset, tmp_path):
+    cfg = make_config(preset)
+    assert cfg.preset == preset
+    save_toml(cfg, tmp_path / "config.toml")
+    again = make_config("default", tmp_path / "config.toml")
+    assert to_dict(again) == to_dict(cfg)
+
+
+def test_precedence_defaults_preset_toml_flags(tmp_path):
+    (tmp_path / "c.toml").write_text("[motion]\nsteps = 11\nwarmup_steps = 3\n")
+    cfg = make_config("fast", tmp_path / "c.toml", ["motion.steps=12"], seed=5)
+    assert cfg.data.crop_size == PRESETS["fast"][1]["data.crop_size"]
+    assert cfg.motion.warmup_steps == 3
+    assert cfg.motion.steps == 12
+    assert cfg.seed == 5
+    assert Config().motion.steps != 12
+
+
+@pytest.mark.parametrize(
+    "override, match",
+    [
+        ("motion.stepz=3", "unknown config key 'motion.stepz'"),
+        ("nosuch.key=1", "unknown config key 'nosuch.key'"),
+        ("motion.steps=abc", "'motion.steps' must be int"),
+        ("motion.w_sil=yes", "'motion.w_sil' must be float"),
+        ("output.render_video=maybe", "'output.render_video' must be bool"),
+        ("motion.steps", "must look like section.key=value"),
+    ],
+)
+def test_bad_overrides_name_the_key(override, match):
+    with pytest.raises(ConfigError, match=match):
+        make_config("default", overrides=[override])
+
+
+def test_bad_toml_names_the_file_and_key(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[motion]\nsteps = 'many'\n")
+    with pytest.raises(ConfigError, match="'motion.steps' must be int"):
+        make_config("default", bad)
+    bad.write_text("[motion\n")
+    with pytest.raises(ConfigError, match="bad.toml"):
+        make_config("default", bad)
+    with pytest.raises(ConfigError, match="does not exist"):
+        make_config("default", tmp_path / "missing.toml")
+    with pytest.raises(ConfigError, match="unknown preset"):
+        make_config("turbo")
