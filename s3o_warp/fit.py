@@ -176,6 +176,10 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
 PHASES = ("coarse", "warmup", "joint")
 
 
+class FitDiverged(InputError):
+    """The loss or its gradient stayed NaN/Inf for several steps in a row; the message names the term."""
+
+
 class FitInterrupted(Exception):
     """Raised after a stop request (Ctrl-C, SIGTERM) once the checkpoint of the current step is written."""
 
@@ -205,6 +209,51 @@ class Fitter:
         self.history: list[dict] = []
         self.opt = self._make_optimizer()
         self._stop = False
+        self._bad = 0
+        self._good = None
+
+    # -- NaN/Inf guard ------------------------------------------------------------------------------
+    @staticmethod
+    def _non_finite(terms: dict, total: torch.Tensor) -> str | None:
+        for k, (w, v) in terms.items():
+            if not torch.isfinite(v.detach()).all():
+                return f"loss term '{k}'"
+        return None if torch.isfinite(total.detach()) else "total loss"
+
+    def _non_finite_grad(self) -> str | None:
+        names = {id(p): n for n, p in self.model.named_parameters()}
+        for g in self.opt.param_groups:
+            for p in g["params"]:
+                if p.grad is not None and not torch.isfinite(p.grad).all():
+                    return f"gradient of '{names.get(id(p), '?')}'"
+        return None
+
+    def _snapshot(self) -> None:
+        import copy
+
+        self._good = (copy.deepcopy(self.model.state_dict()), copy.deepcopy(self.opt.state_dict()))
+
+    def _recover(self, what: str) -> None:
+        """Skip the step, roll back to the last good state and lower the learning rates."""
+        self._bad += 1
+        mc = self.cfg.motion
+        if self._bad >= mc.nan_max_consecutive:
+            path = self.save_checkpoint() if self._good is not None else None
+            raise FitDiverged(
+                f"the fit diverged: {what} was NaN/Inf for {self._bad} steps in a row in phase '{self.phase}' "
+                f"at step {self.step}; lower the learning rates or that term's weight (last good checkpoint: {path})"
+            )
+        if self._good is not None:
+            self.model.load_state_dict(self._good[0])
+            lrs = [g["lr"] for g in self.opt.param_groups]
+            self.opt.load_state_dict(self._good[1])
+            for g, lr in zip(self.opt.param_groups, lrs):
+                g["lr"] = lr
+        for g in self.opt.param_groups:
+            g["lr"] *= mc.nan_lr_factor
+        self.opt.zero_grad(set_to_none=True)
+        log.warning("%s is NaN/Inf at %s step %d: step skipped, rolled back, learning rates x%g",
+                    what, self.phase, self.step, mc.nan_lr_factor)
 
     def request_stop(self) -> None:
         """Ask the loop to checkpoint and stop at the next step boundary (safe from a signal handler)."""
@@ -315,6 +364,7 @@ class Fitter:
             if phase != self.phase:
                 self.phase, self.step = phase, 0
                 self.opt = self._make_optimizer()
+                self._good = None
                 self.save_checkpoint()
             n = self.phase_steps(phase)
             bar = tqdm(total=n, initial=self.step, desc=f"{phase:>6}", dynamic_ncols=True, leave=True)
@@ -325,9 +375,18 @@ class Fitter:
                 else:
                     terms, sil, mask = self.motion_losses(self.window())
                 total = sum(w * v for w, v in terms.values())
-                total.backward()
+                bad = self._non_finite(terms, total)
+                if bad is None:
+                    total.backward()
+                    bad = self._non_finite_grad()
+                if bad is not None:
+                    self._recover(bad)
+                    continue
                 self.opt.step()
                 self.step += 1
+                self._bad = 0
+                if self.step % self.cfg.motion.snapshot_every == 0 or self._good is None:
+                    self._snapshot()
                 bar.update(1)
                 if self.step % self.cfg.motion.log_every == 0 or self.step == n:
                     iou = float(L.soft_iou(sil.detach(), mask).mean())

@@ -116,3 +116,35 @@ def test_cuda_device_without_cuda_is_one_clear_error():
     with pytest.raises(InputError, match="--device cuda"):
         resolve_device("cuda")
     assert resolve_device(None).type == "cpu"
+
+
+def test_nan_in_a_loss_is_skipped_rolled_back_and_then_stops_naming_the_term(tiny_sequence, tmp_path, monkeypatch):
+    from s3o_warp.fit import FitDiverged
+
+    cfg = _cfg(**{"coarse.steps": 2, "motion.warmup_steps": 6, "motion.steps": 2, "motion.snapshot_every": 1})
+    orig = Fitter.motion_losses
+    calls = {"n": 0}
+
+    def nan_once(self, frames):
+        calls["n"] += 1
+        terms, sil, mask = orig(self, frames)
+        if calls["n"] == 4:
+            w, v = terms["sil"]
+            terms["sil"] = (w, v * float("nan"))
+        return terms, sil, mask
+
+    monkeypatch.setattr(Fitter, "motion_losses", nan_once)
+    fit(tiny_sequence, tmp_path / "once", cfg, torch.device("cpu"))
+    st = torch.load(latest_checkpoint(tmp_path / "once"), weights_only=False)
+    assert all(torch.isfinite(v).all() for v in st["model"].values() if v.is_floating_point())
+    assert calls["n"] == 6 + 2 + 1  # the skipped step was retried
+
+    def nan_always(self, frames):
+        terms, sil, mask = orig(self, frames)
+        w, v = terms["flow"]
+        terms["flow"] = (w, v * float("inf"))
+        return terms, sil, mask
+
+    monkeypatch.setattr(Fitter, "motion_losses", nan_always)
+    with pytest.raises(FitDiverged, match="loss term 'flow'"):
+        fit(tiny_sequence, tmp_path / "always", cfg, torch.device("cpu"))
