@@ -153,22 +153,33 @@ def grad_blend_vertices_kernel(
 @wp.kernel
 def grad_blend_transforms_kernel(
     verts: wp.array(dtype=wp.vec3),
-    weights: wp.array2d(dtype=wp.float32),
+    weights_t: wp.array2d(dtype=wp.float32),
     grad_posed: wp.array2d(dtype=wp.vec3),
     chunk: int,
     # outputs
     grad_transforms: wp.array3d(dtype=mat34),
 ):
-    """Per-(chunk s, frame t, bone b) thread: dM[t, b] partial = sum_n W[n, b] g_tn [x_n; 1]^T."""
+    """Per-(chunk s, frame t, bone b) thread: dM[t, b] partial = sum_n W[n, b] g_tn [x_n; 1]^T.
+
+    ``weights_t`` is W transposed, ``(B, N)``, so that the loop over n reads it contiguously.
+    """
     s, t, b = wp.tid()
     n0 = s * chunk
     n1 = wp.min(n0 + chunk, verts.shape[0])
-    acc = mat34()
+    r0 = wp.vec4()
+    r1 = wp.vec4()
+    r2 = wp.vec4()
     for n in range(n0, n1):
         x = verts[n]
-        wg = weights[n, b] * grad_posed[t, n]
-        acc = acc + wp.outer(wg, wp.vec4(x[0], x[1], x[2], 1.0))
-    grad_transforms[s, t, b] = acc
+        wx = weights_t[b, n] * wp.vec4(x[0], x[1], x[2], 1.0)
+        g = grad_posed[t, n]
+        r0 = r0 + g[0] * wx
+        r1 = r1 + g[1] * wx
+        r2 = r2 + g[2] * wx
+    # rows of the 3x4 adjoint (row-wise accumulators vectorise better than a mat34 outer product)
+    grad_transforms[s, t, b] = mat34(
+        r0[0], r0[1], r0[2], r0[3], r1[0], r1[1], r1[2], r1[3], r2[0], r2[1], r2[2], r2[3]
+    )
 
 
 # ----------------------------------------------------------------------------------------------
@@ -275,7 +286,7 @@ class _BlendFn(torch.autograd.Function):
                 wp.launch(
                     grad_blend_transforms_kernel,
                     dim=(count, t, b),
-                    inputs=[wv, ww, g, chunk],
+                    inputs=[wv, to_wp(weights.t().contiguous()), g, chunk],
                     outputs=[to_wp(part, mat34)],
                     device=dev,
                 )
