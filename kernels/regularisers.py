@@ -111,6 +111,8 @@ def grad_edge_stretch_kernel(
 ):
     """Per-(frame t, edge e) thread: gradient w.r.t. the edge vector d = x_i^t - x_j^t (gathers terms t-1, t).
 
+    Written edge-major, ``grad_edge[e, t]``, so that the scatter to vertices adds contiguous rows.
+
     The derivative of a zero-length edge's length is taken as 0 (as torch's norm does), and of |0| as 0.
     """
     t, e = wp.tid()
@@ -126,7 +128,7 @@ def grad_edge_stretch_kernel(
         c += grad_stretch[t, e] * sign_of(lt - edge_length(verts, t + 1, ij[0], ij[1]))
     if t > 0:
         c -= grad_stretch[t - 1, e] * sign_of(edge_length(verts, t - 1, ij[0], ij[1]) - lt)
-    grad_edge[t, e] = c * u
+    grad_edge[e, t] = c * u
 
 
 @wp.kernel
@@ -247,7 +249,7 @@ class _EdgeStretchFn(torch.autograd.Function):
     def backward(ctx, grad_s):
         verts, edges = ctx.saved_tensors
         t, e = verts.shape[0], edges.shape[0]
-        ge = torch.empty((t, e, 3), dtype=torch.float32, device=verts.device)
+        ge = torch.empty((e, t, 3), dtype=torch.float32, device=verts.device)
         with stream_of(verts):
             wp.launch(
                 grad_edge_stretch_kernel,
@@ -256,11 +258,13 @@ class _EdgeStretchFn(torch.autograd.Function):
                 outputs=[to_wp(ge, wp.vec3)],
                 device=wp_device(verts),
             )
-        gv = torch.zeros_like(verts)
+        n = verts.shape[1]
+        gv = torch.zeros((n, t * 3), dtype=torch.float32, device=verts.device)
         idx = edges.long()
-        gv.index_add_(1, idx[:, 0], ge)
-        gv.index_add_(1, idx[:, 1], ge, alpha=-1.0)
-        return gv, None
+        ge = ge.view(e, t * 3)
+        gv.index_add_(0, idx[:, 0], ge)
+        gv.index_add_(0, idx[:, 1], ge, alpha=-1.0)
+        return gv.view(n, t, 3).transpose(0, 1).contiguous(), None
 
 
 class _UmbrellaFn(torch.autograd.Function):
