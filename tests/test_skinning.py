@@ -205,3 +205,19 @@ def test_blend_skinning_shape_errors(shapes, match):
 def test_blend_skinning_dtype_error():
     with pytest.raises(TypeError, match="verts must be float32"):
         blend_skinning(torch.zeros(5, 3, dtype=torch.float64), torch.zeros(5, 2), torch.zeros(1, 2, 3, 4), torch.zeros(1, 3, 4))
+
+
+def test_inputs_modified_in_place_before_backward_raise():
+    """The ops save their inputs for backward, so torch's version check catches in-place edits."""
+    gen = torch.Generator().manual_seed(10)
+    leaf = torch.randn(6, 3, generator=gen, requires_grad=True)
+    verts = leaf * 1.0
+    out = blend_skinning(verts, torch.rand(6, 2, generator=gen), _rt(1, 2, gen), _rt(1, None, gen))
+    verts.add_(1.0)
+    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
+        out.sum().backward()
+    centers = torch.randn(2, 3, generator=gen, requires_grad=True) * 1.0
+    w = skinning_weights(leaf.detach(), centers, torch.eye(3).expand(2, 3, 3).contiguous())
+    centers.mul_(2.0)
+    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
+        w.sum().backward()
