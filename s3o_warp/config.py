@@ -69,6 +69,9 @@ class MotionConfig:
     """Frames per optimisation step."""
     warmup_steps: int = 200
     """Steps with the mesh frozen (camera and motion only)."""
+    warmup_sweep: float = 0.5
+    """Fraction of the warm-up that sweeps windows outward from the canonical frame, each new frame starting
+    from its nearest already-fitted neighbour's pose (0 = random windows only)."""
     steps: int = 600
     """Steps of the joint shape + motion + camera phase after the warm-up."""
     lr_motion: float = 0.02

@@ -310,11 +310,53 @@ class Fitter:
         terms["lap"] = (cc.w_lap, laplacian_loss(m.verts, m.faces))
         return terms, sil, d.masks[fr]
 
+    def sweep_starts(self) -> list[int]:
+        """Window starts of the warm-up sweep: the canonical frame's window, then outward both ways."""
+        T = self.data.num_frames
+        n = min(self.cfg.motion.batch_frames, T)
+        stride = max(1, n // 2)
+        s0 = min(max(self.coarse.canonical - n // 2, 0), T - n)
+        right = list(range(s0 + stride, T - n + 1, stride))
+        if right and right[-1] != T - n:
+            right.append(T - n)
+        left = list(range(s0 - stride, -1, -stride))
+        if left and left[-1] != 0:
+            left.append(0)
+        order = [s0]
+        for k in range(max(len(left), len(right))):
+            order += ([right[k]] if k < len(right) else []) + ([left[k]] if k < len(left) else [])
+        return order
+
     def window(self) -> torch.Tensor:
         T = self.data.num_frames
         n = min(self.cfg.motion.batch_frames, T)
+        mc = self.cfg.motion
+        sweep_steps = int(mc.warmup_sweep * mc.warmup_steps) if self.phase == "warmup" else 0
+        if self.step < sweep_steps:
+            starts = self.sweep_starts()
+            per = max(1, sweep_steps // len(starts))
+            start = starts[min(self.step // per, len(starts) - 1)]
+            frames = torch.arange(start, start + n, device=self.device)
+            self._seed_unvisited(frames)
+            return frames
         start = int(torch.randint(0, T - n + 1, (1,), generator=self.gen))
         return torch.arange(start, start + n, device=self.device)
+
+    @torch.no_grad()
+    def _seed_unvisited(self, frames: torch.Tensor) -> None:
+        """Frames entering the sweep for the first time start from the nearest visited frame's pose."""
+        m = self.model
+        visited = m.visited
+        if not bool(visited.any()):
+            visited[self.coarse.canonical] = True
+        idx = torch.nonzero(visited).flatten()
+        for f in frames.tolist():
+            if visited[f]:
+                continue
+            src = int(idx[(idx - f).abs().argmin()])
+            for p in (m.root_aa, m.root_t, m.bone_aa, m.bone_t):
+                p.data[f] = p.data[src]
+        visited[frames] = True
 
     def motion_losses(self, frames: torch.Tensor) -> dict:
         from s3o_warp.kernels.raster import interpolate, rasterize, soft_silhouette

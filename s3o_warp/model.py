@@ -67,6 +67,7 @@ class S3OModel(nn.Module):
         self.log_focal = nn.Parameter(torch.tensor(float(torch.log(torch.tensor(init.focal))), **f32))
         S = float(init.crop_size)
         self.pp = nn.Parameter(torch.full((T, 2), (S - 1) / 2, **f32))
+        self.register_buffer("visited", torch.zeros(T, dtype=torch.bool))  # warm-up sweep bookkeeping
         self.register_buffer("crop_scale", torch.as_tensor(init.crop_scale, **f32).clone())
         self.register_buffer("crop_to_frame", torch.as_tensor(init.crop_to_frame, **f32).clone())
         self.crop_size = int(init.crop_size)
