@@ -1,0 +1,518 @@
+"""Skeleton learning, the M-step of phase 2 (paper 3.3-3.4), as pure functions.
+
+Measurements (this module): per-bone motion from optical flow (eq. 4), motion similarity (eq. 8),
+joint positions from skinning weights, bone endpoints and per-frame bone lengths (eq. 6, corrected),
+the kinematic tree over the joint graph, the LASR-like virtual-bone baseline, and ``skeleton.json``.
+Edits (:mod:`s3o_warp.skeleton_edit`, re-exported here): bone shifting (eq. 5), growth, upsampling,
+joint creation (eq. 7), merging (eq. 9) and :func:`remap_bones`, the model surgery that applies an edit
+to an ``S3OModel`` and its Adam optimiser without a jump in the posed mesh.
+
+Notation (paper Table 4): ``X^0 = M_c`` canonical vertices ``(N, 3)`` (object frame); ``W`` skinning
+weights ``(N, B)``; bone b has centre ``C_b``, precision ``Q_b`` and a length; a joint ``J_ij`` joins
+bones i and j at a 3D position; ``F^{B,t}`` ``(B, 2)`` bone motion in the image between frames t and
+t+1 (crop pixels); ``V^t`` ``(N,)`` vertex visibility at frame t; ``I_b`` the vertices whose argmax
+weight is b. Every threshold is a keyword argument whose default is the paper's value where it gives
+one.
+
+A typical M-step (the fit loop owns the order and the schedule)::
+
+    W = model.skinning()
+    apply(shift_bones(X, W, C))                                  # eq. 5, every M-step
+    apply(grow_skeleton(X, W, C, Q, parents, ref_extents))      # before e1
+    apply(upsample_skeleton(X, W, C, Q, parents))               # at e1
+    F, ok = bone_flow(verts_cam, K, flow, visible, W)           # after e1
+    apply(merge_bones(motion_similarity(F, ok), W, C, Q, parents, t_o))
+    E = bone_endpoints(X, W, tree_joints(parents))
+    apply(split_at_joints(X, W, C, Q, parents, E, create_joints(bone_lengths_per_frame(E, posed), t_d)))
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+
+import numpy as np
+import torch
+
+from s3o_warp.skeleton_edit import (
+    DEFAULT_SHARPNESS,
+    SkeletonEdit,
+    _bones_in,
+    _check,
+    _np,
+    apply_edit,
+    assign_parts,
+    children_of,
+    grow_skeleton,
+    merge_bones,
+    part_extents,
+    precision_from_points,
+    precision_to_quat_scales,
+    remap_bones,
+    shift_bones,
+    split_at_joints,
+    tree_joints,
+    upsample_skeleton,
+)
+
+log = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------------------------------------------
+# bone motion from optical flow (eq. 4)
+# ---------------------------------------------------------------------------------------------------
+
+
+def bone_flow(
+    verts_cam: torch.Tensor,
+    K: torch.Tensor,
+    flow: torch.Tensor,
+    visible: torch.Tensor,
+    weights: torch.Tensor,
+    conf: torch.Tensor | None = None,
+    min_visible: float = 0.1,
+    min_mass: float = 3.0,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-bone image motion ``F^{B,t}`` from the observed flow, eq. 4, normalised.
+
+    For each pair (t, t+1): project frame t's vertices with ``K[t]``, sample ``flow[t]`` bilinearly
+    at the projections (OpenCV pixel centres: pixel (c, r) is at (c, r), so sampling at integer
+    coordinates returns that pixel's flow exactly), keep the visible vertices that land inside the
+    image (``v_n = V_n^t``, times the sampled ``conf`` if given) and blend per bone:
+    ``F_b^{B,t} = sum_n W[n,b] v_n F_n^{S,t} / sum_n W[n,b] v_n``. The paper's eq. 4 is unnormalised,
+    which makes a barely visible bone's vector short and its cosine noisy; normalising by the visible
+    weight mass gives the mean flow of what is seen, and ``valid`` drops what is barely seen.
+
+    Args:
+        verts_cam: ``(T, N, 3)`` posed vertices in the camera frame (OpenCV, +z forward).
+        K: ``(T, 3, 3)`` intrinsics in the pixels of the image ``flow`` lives on (the crop).
+        flow: ``(T-1, H, W, 2)`` forward flow t -> t+1 as (dx, dy) in pixels.
+        visible: ``(T, N)`` bool vertex visibility (``s3o_warp.ops.vertex_visibility``).
+        weights: ``(N, B)`` skinning weights W.
+        conf: optional ``(T-1, H, W)`` flow confidence in [0, 1] (forward-backward consistency).
+        min_visible: a bone is valid at t when its visible weight mass is at least this fraction of
+            its total mass ``sum_n W[n, b]``...
+        min_mass: ...and at least this many vertices' worth of weight.
+
+    Returns:
+        ``F_B`` ``(T-1, B, 2)`` float32 bone flow in pixels (0 where not valid) and ``valid``
+        ``(T-1, B)`` bool. Concretely, ``valid[t, b]`` is False when bone b is barely visible in frame t.
+    """
+    name = "bone_flow"
+    if not (verts_cam.dim() == 3 and verts_cam.shape[-1] == 3):
+        raise ValueError(f"{name}(): verts_cam must have shape (T, N, 3), got {tuple(verts_cam.shape)}")
+    T, N = verts_cam.shape[:2]
+    if T < 2:
+        raise ValueError(f"{name}(): need at least 2 frames, got {T}")
+    if tuple(K.shape) != (T, 3, 3):
+        raise ValueError(f"{name}(): K must have shape ({T}, 3, 3), got {tuple(K.shape)}")
+    if flow.dim() != 4 or flow.shape[0] != T - 1 or flow.shape[-1] != 2:
+        raise ValueError(f"{name}(): flow must have shape ({T - 1}, H, W, 2), got {tuple(flow.shape)}")
+    if tuple(visible.shape) != (T, N):
+        raise ValueError(f"{name}(): visible must have shape ({T}, {N}), got {tuple(visible.shape)}")
+    if weights.dim() != 2 or weights.shape[0] != N:
+        raise ValueError(f"{name}(): weights must have shape ({N}, B), got {tuple(weights.shape)}")
+    H, Wd = flow.shape[1:3]
+    if conf is not None and tuple(conf.shape) != (T - 1, H, Wd):
+        raise ValueError(f"{name}(): conf must have shape ({T - 1}, {H}, {Wd}), got {tuple(conf.shape)}")
+    from s3o_warp.geometry import project
+
+    with torch.no_grad():
+        dev = verts_cam.device
+        v = verts_cam[:-1].float()
+        uv = project(v, K[:-1].to(dev).float())  # (T-1, N, 2)
+        inside = (
+            (v[..., 2] > 0)
+            & (uv[..., 0] >= -0.5) & (uv[..., 0] <= Wd - 0.5)
+            & (uv[..., 1] >= -0.5) & (uv[..., 1] <= H - 0.5)
+        )
+        # align_corners=True: -1 and +1 are the centres of the first and last pixels (OpenCV centres)
+        g = torch.stack([2 * uv[..., 0] / max(Wd - 1, 1) - 1, 2 * uv[..., 1] / max(H - 1, 1) - 1], -1)[:, None]
+        img = flow.to(dev).float().permute(0, 3, 1, 2)
+        if conf is not None:
+            img = torch.cat([img, conf.to(dev).float()[:, None]], 1)
+        s = torch.nn.functional.grid_sample(img, g, mode="bilinear", padding_mode="border", align_corners=True)
+        s = s[:, :, 0].permute(0, 2, 1)  # (T-1, N, C)
+        vis = (visible[:-1].to(dev) & inside).float()
+        if conf is not None:
+            vis = vis * s[..., 2].clamp(0, 1)
+        Wf = weights.to(dev).float()
+        mass = vis @ Wf  # (T-1, B)
+        num = torch.einsum("tn,nb,tnc->tbc", vis, Wf, s[..., :2])
+        total = Wf.sum(0)
+        valid = (mass >= min_visible * total) & (mass >= min_mass) & (mass > 0)
+        F = torch.where(valid[..., None], num / mass.clamp_min(1e-12)[..., None], torch.zeros_like(num))
+    return F, valid
+
+
+def motion_similarity(F_B: torch.Tensor, valid: torch.Tensor, min_flow: float = 0.5,
+                      min_frames: int = 2) -> torch.Tensor:
+    """Motion similarity of every bone pair, eq. 8: ``min_f S(F_b^f, F_b'^f)`` over frames both see.
+
+    ``S`` is the cosine similarity, made safe for static frames: with ``m = min_flow`` (pixels),
+    ``S_m(a, b) = a.b / (max(|a|, m) max(|b|, m))``. It equals the cosine when both vectors are
+    longer than m; a frame where BOTH are shorter than m says nothing about direction and is skipped;
+    where only one is short, S_m shrinks smoothly towards 0 (one part moves, the other does not:
+    not moving together). Pairs with fewer than ``min_frames`` usable frames get ``-inf`` (never
+    merged). The diagonal is 1.
+
+    Args:
+        F_B: ``(T-1, B, 2)`` bone flow (:func:`bone_flow`), pixels.
+        valid: ``(T-1, B)`` bool.
+        min_flow: m, the magnitude (pixels) below which a bone counts as static in a frame.
+        min_frames: fewest common usable frames for a finite similarity.
+
+    Returns:
+        ``(B, B)`` float32 symmetric similarities in [-1, 1] or -inf.
+    """
+    if F_B.dim() != 3 or F_B.shape[-1] != 2:
+        raise ValueError(f"motion_similarity(): F_B must have shape (T-1, B, 2), got {tuple(F_B.shape)}")
+    if tuple(valid.shape) != tuple(F_B.shape[:2]):
+        raise ValueError(f"motion_similarity(): valid must have shape {tuple(F_B.shape[:2])}, got {tuple(valid.shape)}")
+    min_flow = max(float(min_flow), 1e-9)
+    with torch.no_grad():
+        F = F_B.float()
+        mag = F.norm(dim=-1)  # (T', B)
+        den = mag.clamp_min(min_flow)
+        S = torch.einsum("tbc,tdc->tbd", F, F) / (den[:, :, None] * den[:, None, :])
+        moving = mag >= min_flow
+        use = valid[:, :, None] & valid[:, None, :] & (moving[:, :, None] | moving[:, None, :])
+        S = torch.where(use, S, torch.full_like(S, float("inf")))
+        out = S.min(0).values
+        out = torch.where(use.sum(0) >= min_frames, out, torch.full_like(out, float("-inf")))
+        out.fill_diagonal_(1.0)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------
+# joints, endpoints, lengths
+# ---------------------------------------------------------------------------------------------------
+
+
+def joint_selection(weights, pairs, t_r: float = 0.4, fallback_count: int = 4) -> np.ndarray:
+    """``(J, N)`` row-normalised selection: joint positions are ``selection @ X``.
+
+    Row j is uniform over ``V_ij = {n : W[n,i] >= t_r and W[n,j] >= t_r}`` (paper 3.4, "Joint
+    Positions"). When ``V_ij`` is empty (the bones barely overlap), the row is uniform over the
+    ``fallback_count`` vertices with the largest ``min(W[n,i], W[n,j])``: the points most shared
+    by both bones, which lie on their boundary.
+    """
+    W = _np(weights)
+    P = _np(pairs, np.int64).reshape(-1, 2)
+    if W.ndim != 2:
+        raise ValueError(f"joint_selection(): weights must have shape (N, B), got {W.shape}")
+    if ((P < 0) | (P >= W.shape[1])).any():
+        raise ValueError(f"joint_selection(): pairs must index bones in [0, {W.shape[1]})")
+    out = np.zeros((len(P), W.shape[0]))
+    for j, (a, b) in enumerate(P):
+        m = np.minimum(W[:, a], W[:, b])
+        sel = m >= t_r
+        if not sel.any():
+            sel = np.zeros(len(m), bool)
+            sel[np.argsort(-m, kind="stable")[: max(1, fallback_count)]] = True
+        out[j, sel] = 1.0 / sel.sum()
+    return out
+
+
+def joint_positions(verts, weights, pairs, t_r: float = 0.4, fallback_count: int = 4) -> np.ndarray:
+    """Joint positions ``J_ij = mean of X_n over V_ij`` (see :func:`joint_selection` for the empty case).
+
+    Args:
+        verts: ``(N, 3)`` canonical or ``(T, N, 3)`` posed vertices (any frame; the result is in it).
+        weights: ``(N, B)`` W. pairs: ``(J, 2)`` bone pairs (i, j).
+        t_r: weight threshold (paper: 0.4).
+        fallback_count: vertices averaged when ``V_ij`` is empty.
+
+    Returns:
+        ``(J, 3)`` or ``(T, J, 3)`` float64 positions.
+    """
+    X = _np(verts)
+    if X.shape[-1] != 3 or X.ndim not in (2, 3):
+        raise ValueError(f"joint_positions(): verts must have shape (N, 3) or (T, N, 3), got {X.shape}")
+    Ssel = joint_selection(weights, pairs, t_r, fallback_count)
+    if Ssel.shape[1] != X.shape[-2]:
+        raise ValueError(f"joint_positions(): weights have {Ssel.shape[1]} vertices, verts {X.shape[-2]}")
+    return np.einsum("jn,...nc->...jc", Ssel, X)
+
+
+def bone_endpoints(verts, weights, pairs, t_r: float = 0.4, far_fraction: float = 0.1,
+                   fallback_count: int = 4) -> np.ndarray:
+    """``(B, 2, N)`` endpoint selection: bone b's two ends are ``E[b, 0] @ X`` and ``E[b, 1] @ X``.
+
+    A bone's length is the distance between its ends ("distance between the coordinates of joint
+    pairs"), so the ends are chosen once, on the canonical mesh, and then follow the vertices:
+    - two or more joints: the two of its joints farthest apart;
+    - one joint (an end bone): that joint and the far end, the mean of the ``far_fraction`` of its
+      part's vertices ``I_b`` farthest from the joint;
+    - no joint: the means of the lowest and highest ``far_fraction`` of ``I_b`` along its principal axis;
+    - no part vertices: both ends at the vertex of largest weight (length 0).
+    """
+    X, W = _bones_in("bone_endpoints", verts, weights)
+    P = _np(pairs, np.int64).reshape(-1, 2)
+    N, B = W.shape
+    Jsel = joint_selection(W, P, t_r, fallback_count)
+    jpos = Jsel @ X
+    lab = assign_parts(W)
+    E = np.zeros((B, 2, N))
+
+    def mean_of(idx: np.ndarray) -> np.ndarray:
+        r = np.zeros(N)
+        r[idx] = 1.0 / len(idx)
+        return r
+
+    for b in range(B):
+        mine = [j for j, (a, c) in enumerate(P) if b in (a, c)]
+        part = np.flatnonzero(lab == b)
+        nfar = max(1, int(round(far_fraction * len(part))))
+        if len(mine) >= 2:
+            d = np.linalg.norm(jpos[mine][:, None] - jpos[mine][None], axis=-1)
+            i, k = np.unravel_index(np.argmax(d), d.shape)
+            E[b, 0], E[b, 1] = Jsel[mine[i]], Jsel[mine[k]]
+        elif len(part) == 0:
+            E[b, 0] = E[b, 1] = mean_of(np.array([int(np.argmax(W[:, b]))]))
+        elif len(mine) == 1:
+            E[b, 0] = Jsel[mine[0]]
+            dist = np.linalg.norm(X[part] - jpos[mine[0]], axis=1)
+            E[b, 1] = mean_of(part[np.argsort(-dist, kind="stable")[:nfar]])
+        else:
+            c = X[part] - X[part].mean(0)
+            axis = np.linalg.svd(c, full_matrices=False)[2][0] if len(part) > 1 else np.array([1.0, 0, 0])
+            order = np.argsort(c @ axis, kind="stable")
+            E[b, 0], E[b, 1] = mean_of(part[order[:nfar]]), mean_of(part[order[-nfar:]])
+    return E
+
+
+def bone_lengths(endpoints, verts) -> np.ndarray:
+    """Bone lengths ``|E[b,1] X - E[b,0] X|``: ``(B,)`` for ``(N, 3)`` verts, ``(T, B)`` for posed ``(T, N, 3)``.
+
+    Per frame, the length of bone b is the distance between its two endpoints (:func:`bone_endpoints`)
+    carried by the posed vertices; a joint's vertex set moves with the blend of both its bones, so a
+    bone whose region bends or stretches changes length, a rigidly moving one does not.
+    """
+    E = _np(endpoints)
+    X = _np(verts)
+    if E.ndim != 3 or E.shape[1] != 2 or X.shape[-1] != 3 or X.shape[-2] != E.shape[2]:
+        raise ValueError(f"bone_lengths(): need endpoints (B, 2, N) and verts (..., N, 3), got {E.shape}, {X.shape}")
+    ends = np.einsum("bkn,...nc->...bkc", E, X)
+    return np.linalg.norm(ends[..., 1, :] - ends[..., 0, :], axis=-1)
+
+
+def bone_lengths_per_frame(endpoints, verts_posed) -> np.ndarray:
+    """``(T, B)`` lengths of every bone in every frame from posed vertices ``(T, N, 3)`` (any rigid frame)."""
+    X = _np(verts_posed)
+    if X.ndim != 3:
+        raise ValueError(f"bone_lengths_per_frame(): verts_posed must have shape (T, N, 3), got {X.shape}")
+    return bone_lengths(endpoints, X)
+
+
+def create_joints(lengths, t_d: float = 0.15) -> np.ndarray:
+    """Which bones get a new joint, eq. 6 corrected: ``(max_f L_b^f - min_f L_b^f) / median_f L_b^f > t_d``.
+
+    The paper compares two different bones (a typo); the intent is one bone's length range over the
+    frames. The range is taken relative to the bone's median length because a monocular
+    reconstruction's units are arbitrary (an absolute t_d would depend on the scene scale). Bones
+    of median length 0 never qualify. Apply the result with :func:`split_at_joints`.
+
+    Args:
+        lengths: ``(T, B)`` per-frame bone lengths (:func:`bone_lengths_per_frame`).
+        t_d: relative length-variation threshold (not given in the paper).
+
+    Returns:
+        ``(B,)`` bool.
+    """
+    L = _np(lengths)
+    if L.ndim != 2:
+        raise ValueError(f"create_joints(): lengths must have shape (T, B), got {L.shape}")
+    med = np.median(L, axis=0)
+    rng = L.max(0) - L.min(0)
+    return (med > 1e-12) & (rng > t_d * np.maximum(med, 1e-12))
+
+
+# ---------------------------------------------------------------------------------------------------
+# kinematic tree
+# ---------------------------------------------------------------------------------------------------
+
+
+def kinematic_tree(num_bones: int, joints, root: int | None = None, weights=None, centers=None) -> np.ndarray:
+    """A spanning tree of the joint graph: ``(B,)`` int64 parents, -1 at the root.
+
+    Breadth-first from the root bone (``root``, else the bone with the most argmax vertices when
+    ``weights`` is given, else bone 0); neighbours are visited in index order. Bones the walk cannot
+    reach (no joint path to the root) are attached one at a time: the unreached bone whose centre is
+    nearest a reached bone's centre hangs from that bone (bone 0 order without ``centers``), then the
+    walk continues through its own joints. So the result is always a single tree.
+
+    Args:
+        num_bones: B.
+        joints: ``(J, 2)`` bone pairs.
+        root: optional root bone.
+        weights: optional ``(N, B)`` W for choosing the root.
+        centers: optional ``(B, 3)`` centres for attaching unconnected bones.
+    """
+    B = int(num_bones)
+    if B < 1:
+        raise ValueError(f"kinematic_tree(): num_bones must be >= 1, got {num_bones}")
+    Jp = _np(joints, np.int64).reshape(-1, 2)
+    if ((Jp < 0) | (Jp >= B)).any():
+        raise ValueError(f"kinematic_tree(): joints must index bones in [0, {B})")
+    if root is None:
+        root = int(np.argmax(np.bincount(assign_parts(weights), minlength=B))) if weights is not None else 0
+    if not 0 <= root < B:
+        raise ValueError(f"kinematic_tree(): root must be in [0, {B}), got {root}")
+    nb: list[set[int]] = [set() for _ in range(B)]
+    for a, b in Jp:
+        if a != b:
+            nb[int(a)].add(int(b))
+            nb[int(b)].add(int(a))
+    C = None if centers is None else _np(centers)
+    parents = np.full(B, -2, np.int64)
+    parents[root] = -1
+
+    def walk(start: int) -> None:
+        q = deque([start])
+        while q:
+            a = q.popleft()
+            for b in sorted(nb[a]):
+                if parents[b] == -2:
+                    parents[b] = a
+                    q.append(b)
+
+    walk(root)
+    while (parents == -2).any():
+        out = np.flatnonzero(parents == -2)
+        inn = np.flatnonzero(parents != -2)
+        if C is None:
+            b, a = int(out[0]), int(root)
+        else:
+            d = np.linalg.norm(C[out][:, None] - C[inn][None], axis=-1)
+            i, k = np.unravel_index(np.argmin(d), d.shape)
+            b, a = int(out[i]), int(inn[k])
+        parents[b] = a
+        log.info("kinematic_tree: bone %d has no joint path to the root; attached to bone %d", b, a)
+        walk(b)
+    return parents
+
+
+# ---------------------------------------------------------------------------------------------------
+# LASR-like baseline
+# ---------------------------------------------------------------------------------------------------
+
+
+def virtual_bones(verts, num_bones: int, seed: int = 0, sharpness: float = DEFAULT_SHARPNESS,
+                  iterations: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """Virtual bones (LASR baseline): k-means centres over the surface, isotropic precisions.
+
+    ``scipy.cluster.vq.kmeans2`` (k-means++ init, ``seed``-ed generator); each bone's precision is
+    ``Q = sharpness / sigma^2 I`` with ``sigma^2`` the mean per-axis squared distance of its cluster
+    (the vertices nearest the final centre) from the centre; clusters of fewer than 2 vertices get the
+    mean over the other clusters.
+
+    Args:
+        verts: ``(N, 3)`` canonical vertices.
+        num_bones: B (at most N).
+        seed: random seed; the same seed gives the same bones.
+        sharpness: precision scale.
+        iterations: k-means iterations.
+
+    Returns:
+        ``centers`` ``(B, 3)`` and ``precisions`` ``(B, 3, 3)``, float64.
+    """
+    from scipy.cluster.vq import kmeans2
+
+    X = _np(verts)
+    _check("virtual_bones", "verts", X, (None, 3))
+    if not 1 <= num_bones <= len(X):
+        raise ValueError(f"virtual_bones(): num_bones must be in [1, {len(X)}], got {num_bones}")
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # scipy warns about empty clusters; handled below
+        cen, _ = kmeans2(X, num_bones, iter=iterations, minit="++", seed=np.random.default_rng(seed))
+    lab = np.argmin(((X[:, None] - cen[None]) ** 2).sum(-1), 1)  # clusters of the final centres
+    var = np.full(num_bones, np.nan)
+    for b in range(num_bones):
+        p = X[lab == b]
+        if len(p) >= 2:
+            var[b] = ((p - cen[b]) ** 2).sum(1).mean() / 3
+    fill = np.nanmean(var) if np.isfinite(var).any() else 1.0
+    var = np.where(np.isfinite(var) & (var > 1e-12), var, fill)
+    return cen.astype(np.float64), np.eye(3)[None] * (sharpness / var)[:, None, None]
+
+
+# ---------------------------------------------------------------------------------------------------
+# skeleton.json
+# ---------------------------------------------------------------------------------------------------
+
+
+def skeleton_json(centers, precisions, lengths, parents, joints, joint_pos, root: int | None = None) -> dict:
+    """The skeleton in the paper's notation, ready for ``json.dumps``.
+
+    ``B`` ``(B, 13)``: per bone centre (3), precision row-major (9), length (1); ``J`` ``(J, 5)``: per
+    joint the two bone indices (2) and the position (3); plus the same as named fields and the
+    kinematic tree (``root`` and ``parents``, -1 for a root). Object frame, object units.
+
+    Args:
+        centers: ``(B, 3)``. precisions: ``(B, 3, 3)``. lengths: ``(B,)``. parents: ``(B,)``.
+        joints: ``(J, 2)`` bone pairs. joint_pos: ``(J, 3)``.
+        root: the root bone (default: the first bone whose parent is -1).
+    """
+    C = _np(centers)
+    B = len(C)
+    _check("skeleton_json", "centers", C, (None, 3))
+    Q = _np(precisions)
+    _check("skeleton_json", "precisions", Q, (B, 3, 3))
+    L = _np(lengths)
+    _check("skeleton_json", "lengths", L, (B,))
+    P = _np(parents, np.int64)
+    _check("skeleton_json", "parents", P, (B,))
+    Jp = _np(joints, np.int64).reshape(-1, 2)
+    Jx = _np(joint_pos).reshape(-1, 3)
+    if len(Jp) != len(Jx):
+        raise ValueError(f"skeleton_json(): {len(Jp)} joints but {len(Jx)} joint positions")
+    if root is None:
+        roots = np.flatnonzero(P < 0)
+        root = int(roots[0]) if len(roots) else 0
+    Bm = np.concatenate([C, Q.reshape(B, 9), L[:, None]], 1)
+    Jm = np.concatenate([Jp.astype(np.float64), Jx], 1)
+    return {
+        "notation": "B: centre(3) precision(9, row-major) length(1); J: bone i, bone j, position(3); object frame",
+        "B": Bm.tolist(),
+        "J": Jm.tolist(),
+        "bones": [
+            {"centre": C[b].tolist(), "precision": Q[b].tolist(), "length": float(L[b]), "parent": int(P[b])}
+            for b in range(B)
+        ],
+        "joints": [{"bones": [int(a), int(b)], "position": x.tolist()} for (a, b), x in zip(Jp, Jx)],
+        "root": int(root),
+        "parents": P.tolist(),
+    }
+
+
+__all__ = [
+    "DEFAULT_SHARPNESS",
+    "SkeletonEdit",
+    "apply_edit",
+    "assign_parts",
+    "bone_endpoints",
+    "bone_flow",
+    "bone_lengths",
+    "bone_lengths_per_frame",
+    "children_of",
+    "create_joints",
+    "grow_skeleton",
+    "joint_positions",
+    "joint_selection",
+    "kinematic_tree",
+    "merge_bones",
+    "motion_similarity",
+    "part_extents",
+    "precision_from_points",
+    "precision_to_quat_scales",
+    "remap_bones",
+    "shift_bones",
+    "skeleton_json",
+    "split_at_joints",
+    "tree_joints",
+    "upsample_skeleton",
+    "virtual_bones",
+]

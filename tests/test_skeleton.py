@@ -1,0 +1,599 @@
+"""Skeleton learning (M-step): hand-made cases with known answers, and naive twins for the vectorised ops."""
+
+from __future__ import annotations
+
+import copy
+import json
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from s3o_warp import skeleton as sk
+from s3o_warp.geometry import axis_angle_to_matrix, matrix_to_quat, project
+from s3o_warp.model import ModelInit, S3OModel
+
+# -------------------------------------------------------------------------------------------------
+# helpers
+# -------------------------------------------------------------------------------------------------
+
+
+def _segment_cloud(a, b, n, radius, rng):
+    """n points in a cylinder of ``radius`` around the segment a -> b (x-aligned segments here)."""
+    t = rng.uniform(0, 1, n)
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    p = a + t[:, None] * (b - a)
+    return p + rng.normal(0, radius, (n, 3)) * np.array([0.2, 1, 1])
+
+
+def _hard_weights(labels, B, soft=0.0):
+    W = np.full((len(labels), B), soft / max(B - 1, 1))
+    W[np.arange(len(labels)), labels] = 1 - soft
+    return W
+
+
+def _chain(n_per=60, seed=0):
+    """Three segments along x: [0,1], [1,2], [2,3]; weights blend linearly across the joints at 1 and 2."""
+    rng = np.random.default_rng(seed)
+    X = np.concatenate([_segment_cloud([i, 0, 0], [i + 1, 0, 0], n_per, 0.05, rng) for i in range(3)])
+    x = X[:, 0]
+    W = np.zeros((len(X), 3))
+    for b in range(3):  # hat functions centred at 0.5, 1.5, 2.5 with support of 1 each side
+        W[:, b] = np.clip(1 - np.abs(x - (b + 0.5)), 0, 1)
+    W[x < 0.5, 0] = 1
+    W[x > 2.5, 2] = 1
+    W /= W.sum(1, keepdims=True)
+    return X, W
+
+
+# -------------------------------------------------------------------------------------------------
+# bone_flow
+# -------------------------------------------------------------------------------------------------
+
+
+def _flow_field(T1, S, fn):
+    """(T1, S, S, 2) float32 flow from fn(col, row, t) -> (dx, dy), pixel centres at integers."""
+    c, r = np.meshgrid(np.arange(S, dtype=np.float64), np.arange(S, dtype=np.float64))
+    return np.stack([np.stack(fn(c, r, t), -1) for t in range(T1)]).astype(np.float32)
+
+
+def _bone_flow_naive(verts_cam, K, flow, visible, W, min_visible, min_mass):
+    """Per-vertex cv2.remap bilinear sampling (pixel centres at integers) and explicit sums."""
+    T, N = verts_cam.shape[:2]
+    S = flow.shape[1]
+    uv = project(torch.as_tensor(verts_cam), torch.as_tensor(K)).numpy()
+    F = np.zeros((T - 1, W.shape[1], 2))
+    ok = np.zeros((T - 1, W.shape[1]), bool)
+    for t in range(T - 1):
+        mx = uv[t, :, 0].astype(np.float32)[None]
+        my = uv[t, :, 1].astype(np.float32)[None]
+        f = cv2.remap(flow[t], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0]
+        inside = (mx[0] >= -0.5) & (mx[0] <= S - 0.5) & (my[0] >= -0.5) & (my[0] <= S - 0.5)
+        v = (visible[t] & inside).astype(np.float64)
+        for b in range(W.shape[1]):
+            m = (W[:, b] * v).sum()
+            if m >= min_visible * W[:, b].sum() and m >= min_mass and m > 0:
+                ok[t, b] = True
+                F[t, b] = (W[:, b, None] * v[:, None] * f).sum(0) / m
+    return F, ok
+
+
+def test_bone_flow_two_translating_parts_one_hidden():
+    """Bone 0 on the left half (flow (+2, 1)), bone 1 on the right (flow (-3, 0)); hidden verts are ignored."""
+    rng = np.random.default_rng(1)
+    S, T, N = 64, 3, 200
+    K = np.array([[50.0, 0, 31.5], [0, 50.0, 31.5], [0, 0, 1]])
+    # vertices at depth 2: left part x in [-0.55, -0.1] -> cols ~ [18, 29]; right part x in [0.1, 0.55]
+    X = np.zeros((N, 3))
+    X[:100, 0] = rng.uniform(-0.55, -0.1, 100)
+    X[100:, 0] = rng.uniform(0.1, 0.55, 100)
+    X[:, 1] = rng.uniform(-0.4, 0.4, N)
+    X[:, 2] = 2.0
+    verts = np.repeat(X[None], T, 0)
+    flow = _flow_field(T - 1, S, lambda c, r, t: (np.where(c < 31.5, 2.0, -3.0), np.where(c < 31.5, 1.0, 0.0)))
+    # hidden: 20 of bone 0's vertices are moved into the right half (wrong flow) but marked hidden
+    verts[0, :20, 0] = 0.4
+    visible = np.ones((T, N), bool)
+    visible[0, :20] = False
+    visible[1, 100:] = False  # bone 1 fully hidden in frame 1
+    labels = np.r_[np.zeros(100, int), np.ones(100, int)]
+    W = _hard_weights(labels, 2)
+    F, ok = sk.bone_flow(torch.tensor(verts, dtype=torch.float32), torch.tensor(K).float().expand(T, 3, 3),
+                         torch.tensor(flow), torch.tensor(visible), torch.tensor(W, dtype=torch.float32))
+    torch.testing.assert_close(F[0], torch.tensor([[2.0, 1.0], [-3.0, 0.0]]), atol=1e-5, rtol=0)
+    torch.testing.assert_close(F[1, 0], torch.tensor([2.0, 1.0]), atol=1e-5, rtol=0)
+    assert ok.tolist() == [[True, True], [True, False]]
+    assert F[1, 1].abs().max() == 0
+
+
+def test_bone_flow_matches_cv2_remap_twin():
+    """Smooth random flow, soft weights, random visibility and a vertex off the image: against cv2.remap sums."""
+    rng = np.random.default_rng(2)
+    S, T, N, B = 40, 4, 150, 3
+    K = np.array([[40.0, 0, 19.5], [0, 40.0, 19.5], [0, 0, 1]])
+    verts = np.concatenate([rng.uniform(-0.45, 0.45, (T, N, 2)), rng.uniform(1.8, 2.2, (T, N, 1))], -1)
+    verts[0, 0, 0] = 5.0  # projects far outside: dropped
+    flow = _flow_field(T - 1, S, lambda c, r, t: (np.sin(c / 5 + t) * 3, np.cos(r / 7) * 2 + c / 20))
+    visible = rng.uniform(size=(T, N)) > 0.3
+    W = rng.dirichlet(np.ones(B) * 0.5, N)
+    kw = dict(min_visible=0.2, min_mass=3.0)
+    F, ok = sk.bone_flow(torch.tensor(verts).float(), torch.tensor(K).float().expand(T, 3, 3), torch.tensor(flow),
+                         torch.tensor(visible), torch.tensor(W).float(), **kw)
+    Fr, okr = _bone_flow_naive(verts.astype(np.float32), np.broadcast_to(K, (T, 3, 3)).astype(np.float32), flow,
+                               visible, W, **kw)
+    assert ok.numpy().tolist() == okr.tolist()
+    np.testing.assert_allclose(F.numpy(), Fr, atol=2e-3)
+
+
+def test_bone_flow_barely_visible_is_invalid():
+    N, T = 50, 2
+    verts = torch.zeros(T, N, 3)
+    verts[..., 2] = 1
+    K = torch.tensor([[10.0, 0, 4.5], [0, 10.0, 4.5], [0, 0, 1]]).expand(T, 3, 3)
+    flow = torch.ones(1, 10, 10, 2)
+    W = torch.zeros(N, 2)
+    W[:, 0] = 1
+    W[:10, 0], W[:10, 1] = 0, 1
+    vis = torch.ones(T, N, dtype=torch.bool)
+    vis[0, :9] = False  # 1 of bone 1's 10 vertices seen: 10% of its mass but below min_mass=3
+    F, ok = sk.bone_flow(verts, K, flow, vis, W)
+    assert ok[0].tolist() == [True, False]
+    F, ok = sk.bone_flow(verts, K, flow, vis, W, min_mass=1.0, min_visible=0.05)
+    assert ok[0].tolist() == [True, True]
+    with pytest.raises(ValueError, match="flow must have shape"):
+        sk.bone_flow(verts, K, flow[0], vis, W)
+
+
+# -------------------------------------------------------------------------------------------------
+# motion similarity and merging
+# -------------------------------------------------------------------------------------------------
+
+
+def _similarity_naive(F, valid, m, min_frames):
+    T1, B = valid.shape
+    out = np.full((B, B), -np.inf)
+    for a in range(B):
+        for b in range(B):
+            vals = []
+            for t in range(T1):
+                fa, fb = F[t, a], F[t, b]
+                na, nb = np.linalg.norm(fa), np.linalg.norm(fb)
+                if valid[t, a] and valid[t, b] and (na >= m or nb >= m):
+                    vals.append(fa @ fb / (max(na, m) * max(nb, m)))
+            if len(vals) >= min_frames:
+                out[a, b] = min(vals)
+        out[a, a] = 1
+    return out
+
+
+def test_motion_similarity_together_vs_different_and_static_frames():
+    rng = np.random.default_rng(3)
+    T1 = 8
+    d = rng.normal(size=(T1, 2)) * 4
+    F = np.zeros((T1, 4, 2))
+    F[:, 0] = d
+    F[:, 1] = 0.5 * d + rng.normal(0, 0.02, (T1, 2))  # same direction, slower: moves together
+    F[:, 2] = d @ np.array([[0, 1], [-1, 0]])  # perpendicular: different motion
+    F[:, 3] = d
+    F[2, :2] = 0.01  # a static frame for bones 0 and 1: skipped, not a disagreement
+    valid = np.ones((T1, 4), bool)
+    valid[1:, 3] = False  # bone 3 seen in one frame only
+    Sim = sk.motion_similarity(torch.tensor(F).float(), torch.tensor(valid))
+    assert Sim[0, 1] > 0.99 and Sim[1, 0] == Sim[0, 1]
+    assert Sim[0, 2] < 0.1
+    assert Sim[0, 3] == -np.inf
+    np.testing.assert_allclose(Sim.numpy(), _similarity_naive(F, valid, 0.5, 2), atol=1e-5)
+    # a frame where only one of the pair moves drives the similarity towards 0
+    F2 = F.copy()
+    F2[4, 1] = 0
+    assert sk.motion_similarity(torch.tensor(F2).float(), torch.tensor(valid))[0, 1] < 0.05
+
+
+def test_merge_together_merges_and_different_does_not():
+    """Chain 0-1-2: 0 and 1 move together, 2 differently -> 0 and 1 merge (eq. 8 with t_o)."""
+    X, W = _chain()
+    C = sk.shift_bones(X, W, np.zeros((3, 3)))
+    Q = np.stack([np.eye(3) * (b + 1) for b in range(3)])
+    parents = np.array([-1, 0, 1])
+    rng = np.random.default_rng(4)
+    d = rng.normal(size=(6, 2)) * 3
+    a = np.deg2rad(5)  # bone 1: slower and 5 degrees off -> cosine 0.996 in every frame
+    F = np.stack([d, 0.8 * d @ np.array([[np.cos(a), np.sin(a)], [-np.sin(a), np.cos(a)]]),
+                  d @ np.array([[0.0, 1], [-1, 0]])], 1)
+    Sim = sk.motion_similarity(torch.tensor(F).float(), torch.ones(6, 3, dtype=torch.bool)).numpy()
+    assert abs(Sim[0, 1] - np.cos(a)) < 1e-5
+    e = sk.merge_bones(Sim, W, C, Q, parents, t_o=0.95)
+    assert e.num_bones == 2 and e.changed
+    assert e.parents.tolist() == [-1, 0]
+    assert [i for i, _ in e.sources[0]] == [0, 1] and e.sources[1] == [(2, 1.0)]
+    assert e.kept.tolist() == [False, True]
+    # stricter threshold than the pair's similarity: nothing merges
+    assert not sk.merge_bones(Sim, W, C, Q, parents, t_o=0.999).changed
+    # non-neighbours never merge even when they move together: 0 and 2 (both moving like d)
+    F3 = np.stack([d, d @ np.array([[0.0, 1], [-1, 0]]), d], 1)
+    Sim3 = sk.motion_similarity(torch.tensor(F3).float(), torch.ones(6, 3, dtype=torch.bool)).numpy()
+    assert not sk.merge_bones(Sim3, W, C, Q, parents).changed
+
+
+def test_merge_modes_and_log_space_weights_do_not_overflow():
+    rng = np.random.default_rng(5)
+    N = 5000
+    labels = rng.choice(3, N, p=[0.5, 0.3, 0.2])
+    W = rng.dirichlet(np.ones(3), N) * 0.2 + _hard_weights(labels, 3) * 0.8  # S ~ (2500, 1500, 1000)
+    C = rng.normal(size=(3, 3))
+    Q = np.stack([np.eye(3) * (b + 1) for b in range(3)])
+    parents = np.array([-1, 0, 1])
+    Sim = np.ones((3, 3))
+    with np.errstate(over="raise"):
+        g = sk.merge_bones(Sim, W, C, Q, parents, mode="greedy")
+        c = sk.merge_bones(Sim, W, C, Q, parents, mode="components")
+        soft = sk.merge_bones(Sim, W, C, Q, parents, mode="components", temperature=1000.0)
+    assert g.num_bones == 2 and c.num_bones == 1  # greedy: each bone merges once per call
+    for e in (g, c, soft):
+        assert np.isfinite(e.centers).all() and np.isfinite(e.precisions).all()
+        for src in e.sources:
+            assert abs(sum(w for _, w in src) - 1) < 1e-12
+    S = W.sum(0)
+    for temp, e in ((1.0, c), (1000.0, soft)):
+        z = S / temp
+        w = np.exp(z - z.max()) / np.exp(z - z.max()).sum()  # softmax computed in log space
+        np.testing.assert_allclose([wi for _, wi in e.sources[0]], w, rtol=1e-12)
+        np.testing.assert_allclose(e.centers[0], w @ C, rtol=1e-12)
+        np.testing.assert_allclose(e.precisions[0], np.einsum("i,ijk->jk", w, Q), rtol=1e-12)
+    assert [wi for _, wi in c.sources[0]][0] == 1.0  # temperature 1: the largest part wins outright
+    assert 0.1 < [wi for _, wi in soft.sources[0]][1] < 0.9
+
+
+# -------------------------------------------------------------------------------------------------
+# shifting, growth, upsampling
+# -------------------------------------------------------------------------------------------------
+
+
+def test_shift_moves_centre_to_part_centroid():
+    rng = np.random.default_rng(6)
+    X = rng.normal(size=(30, 3))
+    labels = np.r_[np.zeros(10, int), np.ones(20, int)]
+    W = _hard_weights(labels, 3, soft=0.2)  # bone 2 owns no vertex
+    C = rng.normal(size=(3, 3))
+    out = sk.shift_bones(X, W, C)
+    np.testing.assert_allclose(out[0], X[:10].mean(0))
+    np.testing.assert_allclose(out[1], X[10:].mean(0))
+    np.testing.assert_array_equal(out[2], C[2])
+
+
+def _limb(length, n=200, seed=7):
+    """Torso blob at the origin (bone 0) and a limb from x=1 to x=1+length (bone 1, a leaf)."""
+    rng = np.random.default_rng(seed)
+    torso = rng.normal(0, 0.3, (300, 3))
+    limb = _segment_cloud([1, 0, 0], [1 + length, 0, 0], n, 0.05, rng)
+    X = np.concatenate([torso, limb])
+    W = _hard_weights(np.r_[np.zeros(300, int), np.ones(n, int)], 2, soft=0.02)
+    return X, W
+
+
+def test_grow_splits_stretched_end_part_in_order():
+    X0, W0 = _limb(1.0)
+    ref = sk.part_extents(X0, W0)
+    X, W = _limb(3.0)  # the limb grew past 2x its initial extent
+    C = sk.shift_bones(X, W, np.zeros((2, 3)))
+    Q = np.stack([np.eye(3)] * 2)
+    parents = np.array([-1, 0])
+    e = sk.grow_skeleton(X, W, C, Q, parents, ref, growth_factor=2.0, sections=3)
+    assert e.num_bones == 4
+    assert e.parents.tolist() == [-1, 0, 1, 2]  # parent -> section 1 -> section 2 -> section 3
+    xs = e.centers[1:, 0]
+    assert (np.diff(xs) > 0.5).all() and 1.0 < xs[0] < xs[-1] < 4.0  # in order along the growth direction
+    assert [s[0][0] for s in e.sources] == [0, 1, 1, 1] and e.kept.tolist() == [True, False, False, False]
+    assert e.joints.tolist() == [[1, 2], [2, 3]]
+    # equal-count sections: about a third of the limb's vertices each (argmax labels of the limb)
+    lab = np.argmin(np.abs(X[300:, 0, None] - xs[None]), 1)
+    assert np.bincount(lab).min() > 50
+    # the references are updated: growing again right away does nothing
+    assert e.extents is not None and (e.extents[1:] < sk.part_extents(X, W)[1]).all()
+    # the torso is not a leaf and the limb did not stretch enough -> identity
+    assert not sk.grow_skeleton(X, W, C, Q, parents, ref * 2, growth_factor=2.0).changed
+
+
+def test_upsample_splits_every_bone_along_principal_axis():
+    X, W = _chain()
+    C = sk.shift_bones(X, W, np.zeros((3, 3)))
+    Q = np.stack([np.eye(3)] * 3)
+    e = sk.upsample_skeleton(X, W, C, Q, np.array([-1, 0, 1]))
+    assert e.num_bones == 6
+    # each old bone b -> new bones 2b (nearer its parent) and 2b+1; chained through the tree
+    assert e.parents.tolist() == [-1, 0, 1, 2, 3, 4]
+    assert (np.diff(e.centers[:, 0]) > 0).all()
+    assert [s[0][0] for s in e.sources] == [0, 0, 1, 1, 2, 2]
+    # the halves are thinner along x than across
+    for Qb in e.precisions:
+        assert Qb[0, 0] > 0 and np.all(np.linalg.eigvalsh(Qb) > 0)
+    # only the longest bones with a relative threshold
+    X2 = X.copy()
+    X2[X2[:, 0] > 2, 0] = 2 + (X2[X2[:, 0] > 2, 0] - 2) * 3
+    e2 = sk.upsample_skeleton(X2, W, C, Q, np.array([-1, 0, 1]), min_relative_extent=0.8)
+    assert e2.num_bones == 4 and [s[0][0] for s in e2.sources] == [0, 1, 2, 2]
+
+
+# -------------------------------------------------------------------------------------------------
+# joints, lengths, joint creation, tree
+# -------------------------------------------------------------------------------------------------
+
+
+def test_joint_position_is_mean_of_shared_vertices_and_fallback():
+    rng = np.random.default_rng(8)
+    X = rng.normal(size=(40, 3))
+    W = np.zeros((40, 3))
+    W[:, 0] = 1
+    W[5:12] = [0.45, 0.45, 0.1]  # shared by bones 0 and 1
+    W[12:14] = [0.5, 0.39, 0.11]  # just below t_r for bone 1
+    W[20:30] = [0.3, 0.0, 0.7]  # bones 0 and 2 never both >= 0.4
+    W[20:23] = [0.35, 0.0, 0.65]
+    J = sk.joint_positions(X, W, [[0, 1], [0, 2]], t_r=0.4, fallback_count=3)
+    np.testing.assert_allclose(J[0], X[5:12].mean(0))
+    np.testing.assert_allclose(J[1], X[20:23].mean(0))  # the 3 vertices of largest min(W0, W2)
+    Jt = sk.joint_positions(np.stack([X, X + 1]), W, [[0, 1]])
+    np.testing.assert_allclose(Jt[1, 0], X[5:12].mean(0) + 1)
+
+
+def test_bone_lengths_and_create_joints_for_stretching_bone():
+    X, W = _chain()
+    pairs = sk.tree_joints(np.array([-1, 0, 1]))
+    assert pairs.tolist() == [[0, 1], [1, 2]]
+    E = sk.bone_endpoints(X, W, pairs)
+    L0 = sk.bone_lengths(E, X)
+    assert abs(L0[1] - 1.0) < 0.1  # joints at x ~ 1 and 2
+    assert 0.7 < L0[0] < 1.2 and 0.7 < L0[2] < 1.2  # joint to far end
+    rng = np.random.default_rng(9)
+    rigid, stretch = [], []
+    for f in range(6):
+        R = axis_angle_to_matrix(torch.tensor(rng.normal(size=3) * 0.5)).numpy()
+        rigid.append(X @ R.T + rng.normal(size=3))
+        s = 1 + 0.3 * f / 5  # the middle part stretches by up to 30 %, the rest translates with it
+        Y = X.copy()
+        mid = (X[:, 0] > 1) & (X[:, 0] < 2)
+        Y[mid, 0] = 1 + (X[mid, 0] - 1) * s
+        Y[X[:, 0] >= 2, 0] += s - 1
+        stretch.append(Y)
+    Lr = sk.bone_lengths_per_frame(E, np.stack(rigid))
+    Ls = sk.bone_lengths_per_frame(E, np.stack(stretch))
+    assert not sk.create_joints(Lr, t_d=0.15).any()
+    assert sk.create_joints(Ls, t_d=0.15).tolist() == [False, True, False]
+    # creating the joint: bone 1 is split in two at the midpoint of its joints (x ~ 1.5)
+    C = sk.shift_bones(X, W, np.zeros((3, 3)))
+    Q = np.stack([np.eye(3)] * 3)
+    e = sk.split_at_joints(X, W, C, Q, np.array([-1, 0, 1]), E, sk.create_joints(Ls))
+    assert e.num_bones == 4 and e.parents.tolist() == [-1, 0, 1, 2]
+    assert [s[0][0] for s in e.sources] == [0, 1, 1, 2]
+    assert e.joints.tolist() == [[1, 2]] and abs(e.joint_positions[0, 0] - 1.5) < 0.1
+    assert e.centers[1, 0] < 1.5 < e.centers[2, 0]
+
+
+def _is_tree(parents):
+    B = len(parents)
+    roots = [b for b in range(B) if parents[b] == -1]
+    if len(roots) != 1:
+        return False
+    for b in range(B):
+        seen, a = set(), b
+        while a != -1:
+            if a in seen:
+                return False
+            seen.add(a)
+            a = int(parents[a])
+    return True
+
+
+def test_kinematic_tree_is_a_spanning_tree():
+    # a cycle 0-1-2-0, a chain 2-3, bone 4 without joints (nearest centre: bone 3), bone 5 joined to 4
+    joints = np.array([[0, 1], [1, 2], [2, 0], [2, 3], [4, 5]])
+    C = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [2, 1, 0], [3, 1.2, 0], [4, 1, 0]], float)
+    W = _hard_weights(np.r_[np.ones(5, int), np.zeros(3, int), np.arange(6)], 6)
+    p = sk.kinematic_tree(6, joints, weights=W, centers=C)
+    assert _is_tree(p) and p[1] == -1  # the root is the bone with the most vertices
+    assert p[4] == 3 and p[5] == 4
+    assert p[0] == 1 and p[2] == 1 and p[3] == 2
+    p0 = sk.kinematic_tree(6, joints, root=5)
+    assert _is_tree(p0) and p0[5] == -1
+    with pytest.raises(ValueError, match="joints must index"):
+        sk.kinematic_tree(3, [[0, 3]])
+
+
+def test_virtual_bones_deterministic_with_seed():
+    rng = np.random.default_rng(10)
+    X = rng.normal(size=(500, 3)) * [3, 1, 1]
+    c1, q1 = sk.virtual_bones(X, 8, seed=3)
+    c2, q2 = sk.virtual_bones(X, 8, seed=3)
+    c3, _ = sk.virtual_bones(X, 8, seed=4)
+    np.testing.assert_array_equal(c1, c2)
+    np.testing.assert_array_equal(q1, q2)
+    assert not np.allclose(np.sort(c1[:, 0]), np.sort(c3[:, 0]))
+    assert c1.shape == (8, 3) and q1.shape == (8, 3, 3)
+    off = q1 - np.eye(3) * q1[:, :1, :1]
+    assert np.abs(off).max() == 0 and (q1[:, 0, 0] > 0).all()  # isotropic, positive
+    lab = np.argmin(((X[:, None] - c1[None]) ** 2).sum(-1), 1)
+    var = np.array([((X[lab == b] - c1[b]) ** 2).sum(1).mean() / 3 for b in range(8)])
+    np.testing.assert_allclose(q1[:, 0, 0], sk.DEFAULT_SHARPNESS / var, rtol=1e-6)
+
+
+def test_skeleton_json_shapes():
+    C = np.arange(6.0).reshape(2, 3)
+    Q = np.stack([np.eye(3), 2 * np.eye(3)])
+    d = sk.skeleton_json(C, Q, [1.0, 2.0], [-1, 0], [[0, 1]], [[0.5, 0.5, 0.5]])
+    d = json.loads(json.dumps(d))
+    assert [len(r) for r in d["B"]] == [13, 13] and [len(r) for r in d["J"]] == [5]
+    assert d["B"][1][:3] == [3, 4, 5] and d["B"][1][3] == 2 and d["B"][1][-1] == 2
+    assert d["J"][0] == [0, 1, 0.5, 0.5, 0.5] and d["root"] == 0 and d["parents"] == [-1, 0]
+    with pytest.raises(ValueError, match="precisions must have shape"):
+        sk.skeleton_json(C, Q[:1], [1.0, 2.0], [-1, 0], [], [])
+
+
+def test_precision_round_trip():
+    rng = np.random.default_rng(11)
+    R = axis_angle_to_matrix(torch.tensor(rng.normal(size=(4, 3)))).numpy()
+    s = rng.normal(size=(4, 3))
+    Q = np.transpose(R, (0, 2, 1)) @ (np.exp(s)[..., None] * R)  # V^T diag(exp s) V with V = R
+    q, ls = sk.precision_to_quat_scales(Q)
+    from s3o_warp.geometry import quat_to_matrix
+
+    V = quat_to_matrix(torch.tensor(q)).numpy()
+    np.testing.assert_allclose(np.transpose(V, (0, 2, 1)) @ (np.exp(ls)[..., None] * V), Q, atol=1e-10)
+
+
+# -------------------------------------------------------------------------------------------------
+# model surgery
+# -------------------------------------------------------------------------------------------------
+
+
+def _model(seed=12, T=4):
+    """A capsule along x with two bones (left/right half), random small motion, the fit's Adam groups."""
+    import trimesh
+
+    g = torch.Generator().manual_seed(seed)
+    mesh = trimesh.creation.capsule(height=2.0, radius=0.3, count=[12, 12])
+    R90 = trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0])
+    mesh.apply_transform(R90)  # axis along x
+    X = torch.tensor(mesh.vertices, dtype=torch.float32)
+    centers = torch.tensor([[-0.6, 0, 0], [0.6, 0, 0]])
+    init = ModelInit(
+        verts=X, faces=torch.tensor(mesh.faces), colors=torch.full((len(X), 3), 0.5), centers=centers,
+        rotations=torch.eye(3).expand(2, 3, 3).clone(), log_scales=torch.log(torch.tensor([[3.0, 8, 8]] * 2)),
+        root_R=torch.eye(3).expand(T, 3, 3).clone(), root_t=torch.tensor([[0.0, 0, 4]] * T),
+        focal=100.0, crop_scale=torch.ones(T), crop_size=64, crop_to_frame=torch.eye(3).expand(T, 3, 3).clone())
+    m = S3OModel(init)
+    with torch.no_grad():
+        m.bone_aa.copy_(0.3 * torch.randn(T, 2, 3, generator=g))
+        m.bone_t.copy_(0.1 * torch.randn(T, 2, 3, generator=g))
+    opt = torch.optim.Adam([
+        {"params": [m.root_aa, m.root_t, m.bone_aa, m.bone_t], "lr": 1e-2, "name": "motion"},
+        {"params": [m.verts, m.color_logits], "lr": 1e-3, "name": "shape"},
+        {"params": [m.bone_centers, m.bone_quat, m.bone_log_scales], "lr": 1e-2, "name": "bones"},
+    ])
+    target = torch.randn(T, len(X), 3, generator=g) * 0.05
+    return m, opt, target
+
+
+def _loss(m, target):
+    frames = torch.arange(m.num_frames)
+    return ((m.forward(frames) - m.forward(frames).detach().mean() - target) ** 2).mean()
+
+
+def _steps(m, opt, target, n):
+    for _ in range(n):
+        opt.zero_grad()
+        _loss(m, target).backward()
+        opt.step()
+
+
+def test_remap_split_keeps_posed_mesh_and_loss():
+    m, opt, target = _model()
+    _steps(m, opt, target, 3)
+    frames = torch.arange(m.num_frames)
+    with torch.no_grad():
+        before = m.forward(frames)
+        loss0 = float(_loss(m, target))
+    X = m.verts.detach()
+    W = m.skinning().detach()
+    C, Q = m.bone_centers.detach(), m.precisions().detach()
+    e = sk.upsample_skeleton(X, W, C, Q, np.array([-1, 0]))
+    assert e.num_bones == 4
+    # baseline for "a jump": the same split with the new bones at rest (no inherited motion)
+    m_rest = copy.deepcopy(m)
+    sk.apply_edit(m_rest, None, e)
+    with torch.no_grad():
+        m_rest.bone_aa.zero_()
+        m_rest.bone_t.zero_()
+        rest = m_rest.forward(frames)
+    sk.apply_edit(m, opt, e)
+    assert m.num_bones == 4 and m.bone_aa.shape == (m.num_frames, 4, 3)
+    with torch.no_grad():
+        after = m.forward(frames)  # skinning weights recomputed from the new Gaussians
+        loss1 = float(_loss(m, target))
+    jump = (after - before).norm(dim=-1)
+    rest_jump = (rest - before).norm(dim=-1)
+    assert float(jump.mean()) < 0.05 * float(rest_jump.mean()) and float(jump.max()) < 0.25 * float(rest_jump.max())
+    assert abs(loss1 - loss0) < 0.05 * loss0
+    # every half inherits its parent's transform exactly: with the old weights split over the halves
+    # (each half getting the part of the parent's weight it took), the blend is the parent's
+    Wn = m.skinning().detach()
+    W_half = torch.zeros_like(Wn)
+    for j, src in enumerate(e.sources):
+        i = src[0][0]
+        den = sum(Wn[:, k] for k, s in enumerate(e.sources) if s[0][0] == i)
+        share = torch.where(den > 0, Wn[:, j] / den.clamp_min(1e-30), torch.full_like(den, 0.5))
+        W_half[:, j] = W[:, i] * share
+    with torch.no_grad():
+        exact = m.forward(frames, weights=W_half)
+    torch.testing.assert_close(exact, before, atol=2e-5, rtol=0)
+    # params and groups: the optimiser holds the new tensors, no stale ones
+    held = {id(p) for g in opt.param_groups for p in g["params"]}
+    for name in ("bone_centers", "bone_quat", "bone_log_scales", "bone_aa", "bone_t"):
+        assert id(getattr(m, name)) in held
+        assert getattr(m, name) in opt.state
+    assert all(id(p) in held for p in opt.state)  # no state left on replaced tensors
+    _steps(m, opt, target, 1)  # the optimiser still works
+
+
+def test_remap_carries_adam_state_for_unchanged_bone():
+    """Bone 0 is kept (new index 0), bone 1 is split: an Adam step on bone 0 equals the old optimiser's."""
+    m, opt, target = _model(seed=13)
+    _steps(m, opt, target, 4)
+    X, W = m.verts.detach(), m.skinning().detach()
+    C, Q = m.bone_centers.detach(), m.precisions().detach()
+    e = sk.upsample_skeleton(X, W, C, Q, np.array([-1, 0]), min_relative_extent=2.0)
+    assert not e.changed
+    # split only bone 1 (grow: it is a leaf; its reference extent is tiny)
+    e = sk.grow_skeleton(X, W, C, Q, np.array([-1, 0]), np.array([1e9, 1e-3]), sections=2)
+    assert e.num_bones == 3 and e.kept.tolist() == [True, False, False]
+    m_old, opt_old = copy.deepcopy((m, opt))
+    old_state = {k: v.clone() for k, v in opt.state[m.bone_aa].items()}
+    sk.apply_edit(m, opt, e)
+    # state mapped by the same sources: halves carry bone 1's moments exactly
+    st = opt.state[m.bone_aa]
+    for key in ("exp_avg", "exp_avg_sq"):
+        assert torch.equal(st[key][:, 0], old_state[key][:, 0])
+        assert torch.equal(st[key][:, 1], old_state[key][:, 1]) and torch.equal(st[key][:, 2], old_state[key][:, 1])
+    assert torch.equal(st["step"], old_state["step"])
+
+    def bone0_loss(mm):
+        return ((mm.bone_aa[:, 0] - 0.1) ** 2).sum() + (mm.bone_t[:, 0] ** 3).sum() + \
+            (mm.bone_centers[0] ** 2).sum() + mm.bone_log_scales[0].sum() + mm.bone_quat[0, 1]
+
+    for mm, oo in ((m, opt), (m_old, opt_old)):
+        oo.zero_grad()
+        bone0_loss(mm).backward()
+        oo.step()
+    for name in ("bone_aa", "bone_t"):
+        assert torch.equal(getattr(m, name)[:, 0], getattr(m_old, name)[:, 0])
+    for name in ("bone_centers", "bone_log_scales", "bone_quat"):
+        assert torch.equal(getattr(m, name)[0], getattr(m_old, name)[0])
+
+
+def test_remap_reprovots_shift_and_merge_exactly():
+    """Shifted centres and a merge of two bones with the same motion: posed mesh unchanged for fixed weights."""
+    m, opt, target = _model(seed=14)
+    _steps(m, opt, target, 2)
+    frames = torch.arange(m.num_frames)
+    W = m.skinning().detach()
+    with torch.no_grad():
+        before = m.forward(frames, weights=W)
+    C = sk.shift_bones(m.verts.detach(), W, m.bone_centers.detach()) + np.array([0.1, -0.2, 0.05])
+    sk.remap_bones(m, opt, [[(0, 1.0)], [(1, 1.0)]], C, m.bone_quat, m.bone_log_scales)
+    with torch.no_grad():
+        torch.testing.assert_close(m.forward(frames, weights=W), before, atol=2e-5, rtol=0)
+        # give both bones the same affine motion, then merge them with 30/70 weights
+        R = axis_angle_to_matrix(m.bone_aa[:, 0])
+        a = m.bone_centers[0] + m.bone_t[:, 0] - (R @ m.bone_centers[0][:, None])[..., 0]
+        m.bone_aa[:, 1] = m.bone_aa[:, 0]
+        m.bone_t[:, 1] = a - m.bone_centers[1] + (R @ m.bone_centers[1][:, None])[..., 0]
+        before = m.forward(frames, weights=W)
+    q = matrix_to_quat(torch.eye(3, dtype=torch.float64))[None]
+    sk.remap_bones(m, opt, [[(0, 0.3), (1, 0.7)]], torch.zeros(1, 3), q, torch.zeros(1, 3))
+    with torch.no_grad():
+        after = m.forward(frames, weights=W.sum(1, keepdim=True))
+    torch.testing.assert_close(after, before, atol=2e-5, rtol=0)
+    assert opt.state[m.bone_aa]["exp_avg"].shape == (m.num_frames, 1, 3)
+    with pytest.raises(ValueError, match="weights must sum to 1"):
+        sk.remap_bones(m, opt, [[(0, 0.5)]], torch.zeros(1, 3), q, torch.zeros(1, 3))
+    with pytest.raises(ValueError, match="must list old bones"):
+        sk.remap_bones(m, opt, [[(3, 1.0)]], torch.zeros(1, 3), q, torch.zeros(1, 3))
