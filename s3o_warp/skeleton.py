@@ -14,16 +14,19 @@ t+1 (crop pixels); ``V^t`` ``(N,)`` vertex visibility at frame t; ``I_b`` the ve
 weight is b. Every threshold is a keyword argument whose default is the paper's value where it gives
 one.
 
-A typical M-step (the fit loop owns the order and the schedule)::
+A typical M-step (the fit loop owns the order and the schedule; ``apply = lambda e:
+apply_edit(model, optimizer, e)``, and after every edit W, C, Q and parents are re-read)::
 
-    W = model.skinning()
-    apply(shift_bones(X, W, C))                                  # eq. 5, every M-step
-    apply(grow_skeleton(X, W, C, Q, parents, ref_extents))      # before e1
-    apply(upsample_skeleton(X, W, C, Q, parents))               # at e1
-    F, ok = bone_flow(verts_cam, K, flow, visible, W)           # after e1
+    ident = [[(b, 1.0)] for b in range(B)]                          # eq. 5, every M-step
+    remap_bones(model, opt, ident, shift_bones(X, W, C), model.bone_quat, model.bone_log_scales)
+    apply(grow_skeleton(X, W, C, Q, parents, ref_extents))          # before e1 (keep edit.extents)
+    apply(upsample_skeleton(X, W, C, Q, parents))                   # once, at e1
+    F, ok = bone_flow(verts_cam, K_crop, flow_fwd, visible, W)      # after e1
     apply(merge_bones(motion_similarity(F, ok), W, C, Q, parents, t_o))
     E = bone_endpoints(X, W, tree_joints(parents))
-    apply(split_at_joints(X, W, C, Q, parents, E, create_joints(bone_lengths_per_frame(E, posed), t_d)))
+    L = bone_lengths_per_frame(E, model.posed_object(frames, W))
+    apply(split_at_joints(X, W, C, Q, parents, E, create_joints(L, t_d)))
+    pairs = tree_joints(parents); J = joint_positions(X, W, pairs); lengths = bone_lengths(E, X)
 """
 
 from __future__ import annotations
@@ -133,12 +136,12 @@ def bone_flow(
             img = torch.cat([img, conf.to(dev).float()[:, None]], 1)
         s = torch.nn.functional.grid_sample(img, g, mode="bilinear", padding_mode="border", align_corners=True)
         s = s[:, :, 0].permute(0, 2, 1)  # (T-1, N, C)
-        vis = (visible[:-1].to(dev) & inside).float()
+        vis = (visible[:-1].to(dev).bool() & inside).float()
         if conf is not None:
             vis = vis * s[..., 2].clamp(0, 1)
         Wf = weights.to(dev).float()
         mass = vis @ Wf  # (T-1, B)
-        num = torch.einsum("tn,nb,tnc->tbc", vis, Wf, s[..., :2])
+        num = torch.einsum("tnc,nb->tbc", vis[..., None] * s[..., :2], Wf)
         total = Wf.sum(0)
         valid = (mass >= min_visible * total) & (mass >= min_mass) & (mass > 0)
         F = torch.where(valid[..., None], num / mass.clamp_min(1e-12)[..., None], torch.zeros_like(num))
@@ -293,7 +296,8 @@ def bone_lengths(endpoints, verts) -> np.ndarray:
     X = _np(verts)
     if E.ndim != 3 or E.shape[1] != 2 or X.shape[-1] != 3 or X.shape[-2] != E.shape[2]:
         raise ValueError(f"bone_lengths(): need endpoints (B, 2, N) and verts (..., N, 3), got {E.shape}, {X.shape}")
-    ends = np.einsum("bkn,...nc->...bkc", E, X)
+    B, _, N = E.shape
+    ends = np.matmul(E.reshape(2 * B, N), X).reshape(X.shape[:-2] + (B, 2, 3))
     return np.linalg.norm(ends[..., 1, :] - ends[..., 0, :], axis=-1)
 
 
@@ -326,6 +330,24 @@ def create_joints(lengths, t_d: float = 0.15) -> np.ndarray:
     med = np.median(L, axis=0)
     rng = L.max(0) - L.min(0)
     return (med > 1e-12) & (rng > t_d * np.maximum(med, 1e-12))
+
+
+def parent_anchors(parents, pairs, positions) -> np.ndarray:
+    """``(B, 3)`` each bone's joint with its parent (the growth anchor), NaN where there is none.
+
+    Args:
+        parents: ``(B,)`` tree. pairs: ``(J, 2)`` joint bone pairs. positions: ``(J, 3)`` joint positions.
+    """
+    P = _np(parents, np.int64)
+    Jp = _np(pairs, np.int64).reshape(-1, 2)
+    Jx = _np(positions).reshape(-1, 3)
+    out = np.full((len(P), 3), np.nan)
+    for (a, b), x in zip(Jp, Jx):
+        if P[b] == a:
+            out[b] = x
+        elif P[a] == b:
+            out[a] = x
+    return out
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -505,6 +527,7 @@ __all__ = [
     "kinematic_tree",
     "merge_bones",
     "motion_similarity",
+    "parent_anchors",
     "part_extents",
     "precision_from_points",
     "precision_to_quat_scales",

@@ -25,8 +25,6 @@ from typing import Literal, Sequence
 import numpy as np
 import torch
 
-from s3o_warp.errors import InputError
-
 log = logging.getLogger(__name__)
 
 DEFAULT_SHARPNESS = 2.0 / 3.0
@@ -345,7 +343,8 @@ def grow_skeleton(
     """Skeleton growth (paper 3.4): split stretched end parts into ``sections`` bones along the growth direction.
 
     An end part is the part ``I_b`` of a leaf bone (no children). It grows when its maximum internal
-    distance (:func:`part_extents`) exceeds ``growth_factor`` x its reference value ``initial_extents[b]``.
+    distance (:func:`part_extents`) exceeds ``growth_factor`` x its reference value ``initial_extents[b]``
+    (a reference of 0, a bone that had no part when measured, never grows).
     The growth direction is the unit vector from the connected point on the skeleton (``anchors[b]``:
     the joint with the parent; default the parent's centre) to the end part's centroid (the paper's
     "endpoint"); a root leaf (one-bone skeleton) uses its part's principal axis. The part's vertices
@@ -386,7 +385,7 @@ def grow_skeleton(
     kids = children_of(P)
     splits = {}
     for b in range(B):
-        if kids[b] or not ext[b] > growth_factor * E0[b]:
+        if kids[b] or not E0[b] > 0 or not ext[b] > growth_factor * E0[b]:
             continue
         pts = X[lab == b]
         if len(pts) < sections * min_section_vertices:
@@ -406,8 +405,8 @@ def grow_skeleton(
         if np.bincount(sec, minlength=sections).min() < min_section_vertices:
             continue
         splits[b] = sec
-        log.info("grow_skeleton: end bone %d stretched %.2fx its reference; split into %d", b, ext[b] / max(E0[b], 1e-12),
-                 sections)
+        log.info("grow_skeleton: end bone %d stretched %.2fx its reference; split into %d",
+                 b, ext[b] / max(E0[b], 1e-12), sections)
     if not splits:
         return _identity_edit(C, Q, P, E0)
     edit = _apply_splits(X, W, C, Q, P, splits, sharpness, extents=E0)
@@ -435,7 +434,8 @@ def upsample_skeleton(
     Every bone whose part extent is at least ``min_relative_extent`` x the largest part extent (0 =
     every bone) is split at the median projection on the principal axis of ``I_b`` (equal vertex
     counts). The half nearer to the parent's centre keeps the parent (for a root: the half lower in
-    the axis' dominant coordinate stays the root); the other half is its child; children of the old bone hang from the half nearer to them.
+    the axis' dominant coordinate stays the root); the other half is its child; children of the old
+    bone hang from the half nearer to them.
 
     Args:
         verts, weights, centers, precisions, parents: as in :func:`grow_skeleton`.
@@ -694,9 +694,11 @@ def remap_bones(model, optimizer, sources, centers, quats, log_scales) -> None:
     Bn = len(sources)
     ref = model.bone_centers
     dt = dict(dtype=ref.dtype, device=ref.device)
-    cn = torch.as_tensor(_np(centers), **dt) if not isinstance(centers, torch.Tensor) else centers.detach().to(**dt)
-    qn = torch.as_tensor(_np(quats), **dt) if not isinstance(quats, torch.Tensor) else quats.detach().to(**dt)
-    sn = torch.as_tensor(_np(log_scales), **dt) if not isinstance(log_scales, torch.Tensor) else log_scales.detach().to(**dt)
+
+    def as_t(x) -> torch.Tensor:
+        return x.detach().to(**dt) if isinstance(x, torch.Tensor) else torch.as_tensor(_np(x), **dt)
+
+    cn, qn, sn = as_t(centers), as_t(quats), as_t(log_scales)
     for arg, t, k in (("centers", cn, 3), ("quats", qn, 4), ("log_scales", sn, 3)):
         if tuple(t.shape) != (Bn, k):
             raise ValueError(f"{name}(): {arg} must have shape ({Bn}, {k}) for {Bn} sources, got {tuple(t.shape)}")

@@ -107,7 +107,7 @@ def test_bone_flow_two_translating_parts_one_hidden():
     assert F[1, 1].abs().max() == 0
 
 
-def test_bone_flow_matches_cv2_remap_twin():
+def test_bone_flow_matches_cv2_remap_twin(device):
     """Smooth random flow, soft weights, random visibility and a vertex off the image: against cv2.remap sums."""
     rng = np.random.default_rng(2)
     S, T, N, B = 40, 4, 150, 3
@@ -118,8 +118,10 @@ def test_bone_flow_matches_cv2_remap_twin():
     visible = rng.uniform(size=(T, N)) > 0.3
     W = rng.dirichlet(np.ones(B) * 0.5, N)
     kw = dict(min_visible=0.2, min_mass=3.0)
-    F, ok = sk.bone_flow(torch.tensor(verts).float(), torch.tensor(K).float().expand(T, 3, 3), torch.tensor(flow),
-                         torch.tensor(visible), torch.tensor(W).float(), **kw)
+    F, ok = sk.bone_flow(*(torch.tensor(a).to(device) for a in (verts.astype(np.float32), np.broadcast_to(
+        K, (T, 3, 3)).astype(np.float32), flow, visible, W.astype(np.float32))), **kw)
+    assert F.device.type == torch.device(device).type
+    F, ok = F.cpu(), ok.cpu()
     Fr, okr = _bone_flow_naive(verts.astype(np.float32), np.broadcast_to(K, (T, 3, 3)).astype(np.float32), flow,
                                visible, W, **kw)
     assert ok.numpy().tolist() == okr.tolist()
@@ -210,6 +212,12 @@ def test_merge_together_merges_and_different_does_not():
     assert e.kept.tolist() == [False, True]
     # stricter threshold than the pair's similarity: nothing merges
     assert not sk.merge_bones(Sim, W, C, Q, parents, t_o=0.999).changed
+    # merging a middle pair of a chain 0-1-2-3 re-hangs the child: still a tree, order kept
+    Sim4 = np.full((4, 4), 0.5)
+    Sim4[1, 2] = Sim4[2, 1] = 0.99
+    W4 = np.concatenate([W, W[:, :1]], 1) / 2
+    e4 = sk.merge_bones(Sim4, W4, np.zeros((4, 3)), np.stack([np.eye(3)] * 4), np.array([-1, 0, 1, 2]))
+    assert e4.parents.tolist() == [-1, 0, 1] and [[i for i, _ in s] for s in e4.sources] == [[0], [1, 2], [3]]
     # non-neighbours never merge even when they move together: 0 and 2 (both moving like d)
     F3 = np.stack([d, d @ np.array([[0.0, 1], [-1, 0]]), d], 1)
     Sim3 = sk.motion_similarity(torch.tensor(F3).float(), torch.ones(6, 3, dtype=torch.bool)).numpy()
@@ -279,7 +287,9 @@ def test_grow_splits_stretched_end_part_in_order():
     C = sk.shift_bones(X, W, np.zeros((2, 3)))
     Q = np.stack([np.eye(3)] * 2)
     parents = np.array([-1, 0])
-    e = sk.grow_skeleton(X, W, C, Q, parents, ref, growth_factor=2.0, sections=3)
+    anchors = sk.parent_anchors(parents, [[0, 1]], [[1.0, 0, 0]])
+    assert np.isnan(anchors[0]).all() and anchors[1].tolist() == [1, 0, 0]
+    e = sk.grow_skeleton(X, W, C, Q, parents, ref, growth_factor=2.0, sections=3, anchors=anchors)
     assert e.num_bones == 4
     assert e.parents.tolist() == [-1, 0, 1, 2]  # parent -> section 1 -> section 2 -> section 3
     xs = e.centers[1:, 0]
@@ -445,7 +455,7 @@ def test_precision_round_trip():
 # -------------------------------------------------------------------------------------------------
 
 
-def _model(seed=12, T=4):
+def _model(seed=12, T=4, device="cpu"):
     """A capsule along x with two bones (left/right half), random small motion, the fit's Adam groups."""
     import trimesh
 
@@ -460,16 +470,16 @@ def _model(seed=12, T=4):
         rotations=torch.eye(3).expand(2, 3, 3).clone(), log_scales=torch.log(torch.tensor([[3.0, 8, 8]] * 2)),
         root_R=torch.eye(3).expand(T, 3, 3).clone(), root_t=torch.tensor([[0.0, 0, 4]] * T),
         focal=100.0, crop_scale=torch.ones(T), crop_size=64, crop_to_frame=torch.eye(3).expand(T, 3, 3).clone())
-    m = S3OModel(init)
+    m = S3OModel(init).to(device)
     with torch.no_grad():
         m.bone_aa.copy_(0.3 * torch.randn(T, 2, 3, generator=g))
         m.bone_t.copy_(0.1 * torch.randn(T, 2, 3, generator=g))
+    target = (torch.randn(T, len(X), 3, generator=g) * 0.05).to(device)
     opt = torch.optim.Adam([
         {"params": [m.root_aa, m.root_t, m.bone_aa, m.bone_t], "lr": 1e-2, "name": "motion"},
         {"params": [m.verts, m.color_logits], "lr": 1e-3, "name": "shape"},
         {"params": [m.bone_centers, m.bone_quat, m.bone_log_scales], "lr": 1e-2, "name": "bones"},
     ])
-    target = torch.randn(T, len(X), 3, generator=g) * 0.05
     return m, opt, target
 
 
@@ -485,8 +495,8 @@ def _steps(m, opt, target, n):
         opt.step()
 
 
-def test_remap_split_keeps_posed_mesh_and_loss():
-    m, opt, target = _model()
+def test_remap_split_keeps_posed_mesh_and_loss(device):
+    m, opt, target = _model(device=device)
     _steps(m, opt, target, 3)
     frames = torch.arange(m.num_frames)
     with torch.no_grad():
@@ -506,6 +516,7 @@ def test_remap_split_keeps_posed_mesh_and_loss():
         rest = m_rest.forward(frames)
     sk.apply_edit(m, opt, e)
     assert m.num_bones == 4 and m.bone_aa.shape == (m.num_frames, 4, 3)
+    assert all(getattr(m, n).device == before.device for n in ("bone_centers", "bone_quat", "bone_t"))
     with torch.no_grad():
         after = m.forward(frames)  # skinning weights recomputed from the new Gaussians
         loss1 = float(_loss(m, target))
@@ -569,7 +580,7 @@ def test_remap_carries_adam_state_for_unchanged_bone():
         assert torch.equal(getattr(m, name)[0], getattr(m_old, name)[0])
 
 
-def test_remap_reprovots_shift_and_merge_exactly():
+def test_remap_repivots_shift_and_merge_exactly():
     """Shifted centres and a merge of two bones with the same motion: posed mesh unchanged for fixed weights."""
     m, opt, target = _model(seed=14)
     _steps(m, opt, target, 2)
