@@ -309,7 +309,7 @@ def bone_lengths_per_frame(endpoints, verts_posed) -> np.ndarray:
     return bone_lengths(endpoints, X)
 
 
-def create_joints(lengths, t_d: float = 0.15) -> np.ndarray:
+def create_joints(lengths, t_d: float = 0.25) -> np.ndarray:
     """Which bones get a new joint, eq. 6 corrected: ``(max_f L_b^f - min_f L_b^f) / median_f L_b^f > t_d``.
 
     The paper compares two different bones (a typo); the intent is one bone's length range over the
@@ -317,9 +317,15 @@ def create_joints(lengths, t_d: float = 0.15) -> np.ndarray:
     reconstruction's units are arbitrary (an absolute t_d would depend on the scene scale). Bones
     of median length 0 never qualify. Apply the result with :func:`split_at_joints`.
 
+    Calibration: our bones rotate about their own centres, so the blend region at a joint drifts
+    towards the rotating neighbour's centre. Measured on a rigid 3-bone capsule (16k vertices,
+    bones 1 unit long) whose end bones turn by 35 and 69 degrees, the middle bone's relative length
+    range is 0.19-0.21 with no stretch at all. The default t_d = 0.25 sits above that; lower values
+    also split rigid bones between strongly bending neighbours.
+
     Args:
         lengths: ``(T, B)`` per-frame bone lengths (:func:`bone_lengths_per_frame`).
-        t_d: relative length-variation threshold (not given in the paper).
+        t_d: relative length-variation threshold (not given in the paper; see Calibration).
 
     Returns:
         ``(B,)`` bool.
