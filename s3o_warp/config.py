@@ -50,7 +50,9 @@ class CoarseConfig:
     lr: float = 0.01
     """Adam learning rate of the coarse shape fit (vertex offsets)."""
     sigma: float = 1.0
-    """Soft-silhouette blur sigma (square crop pixels) during the coarse fit."""
+    """Soft-silhouette blur sigma (square crop pixels) at the start of the coarse fit."""
+    sigma_final: float = 0.1
+    """Sigma at the end of the coarse fit (geometric decay): a wide blur inflates thin parts by a pixel or two."""
     w_sil: float = 1.0
     """Weight of the silhouette loss."""
     w_part: float = 0.5
@@ -85,7 +87,10 @@ class MotionConfig:
     lr_camera: float = 0.005
     """Adam learning rate of the focal length (log) and principal points."""
     sigma: float = 1.0
-    """Soft-silhouette blur sigma in square crop pixels."""
+    """Soft-silhouette blur sigma in square crop pixels at the start of each phase."""
+    sigma_final: float = 0.1
+    """Sigma at the end of each phase (geometric decay); SoftRas's aggregation grows the silhouette by about
+    sqrt(sigma) pixels, which matters for legs a few pixels wide."""
     w_sil: float = 1.0
     """Weight of the silhouette loss (mean squared error of the soft silhouette)."""
     w_flow: float = 0.02

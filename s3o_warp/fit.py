@@ -293,7 +293,8 @@ class Fitter:
         verts = m(fr)
         K = m.intrinsics_crop(fr)
         S = d.crop_size
-        sil = soft_silhouette(verts, m.faces, K, (S, S), sigma=cc.sigma)
+        sigma = self.sigma(cc.sigma, cc.sigma_final)
+        sil = soft_silhouette(verts, m.faces, K, (S, S), sigma=sigma)
         terms = {"sil": (cc.w_sil, L.silhouette_loss(sil, d.masks[fr]))}
         parts = self.coarse.part_masks.to(self.device)
         fp = self.coarse.face_parts.to(self.device)
@@ -302,7 +303,7 @@ class Fitter:
             sel = m.faces[fp == p]
             if len(sel) == 0:
                 continue
-            ps = soft_silhouette(verts, sel, K, (S, S), sigma=cc.sigma)
+            ps = soft_silhouette(verts, sel, K, (S, S), sigma=sigma)
             part_terms.append(L.silhouette_loss(ps, parts[p][None]))
         if part_terms:
             terms["part"] = (cc.w_part, torch.stack(part_terms).mean())
@@ -326,6 +327,11 @@ class Fitter:
         for k in range(max(len(left), len(right))):
             order += ([right[k]] if k < len(right) else []) + ([left[k]] if k < len(left) else [])
         return order
+
+    def sigma(self, start: float, final: float) -> float:
+        """Soft-silhouette sigma of the current step: geometric decay from start to final over the phase."""
+        n = max(1, self.phase_steps(self.phase) - 1)
+        return float(start * (final / start) ** min(1.0, self.step / n))
 
     def window(self) -> torch.Tensor:
         T = self.data.num_frames
@@ -367,7 +373,7 @@ class Fitter:
         W = m.skinning()
         verts = m(frames, weights=W)
         K = m.intrinsics_crop(frames)
-        sil = soft_silhouette(verts, m.faces, K, (S, S), sigma=mc.sigma)
+        sil = soft_silhouette(verts, m.faces, K, (S, S), sigma=self.sigma(mc.sigma, mc.sigma_final))
         mask = d.masks[frames]
         terms = {"sil": (mc.w_sil, L.silhouette_loss(sil, mask))}
         face_index, bary, _depth = rasterize(verts, m.faces, K, (S, S))
