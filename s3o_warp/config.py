@@ -120,6 +120,50 @@ class MotionConfig:
 
 
 @dataclass
+class SkeletonConfig:
+    """Skeleton learning, the M-step (paper 3.4, Algorithm 1), between epochs of the joint phase."""
+
+    method: str = "s3o"
+    """s3o (learned physical skeleton), virtual (LASR-like k-means bones, no skeleton learning) or fixed (coarse bones kept)."""
+    epochs: int = 6
+    """Epochs of the joint phase; an M-step runs after every epoch but the last."""
+    e1: int = 2
+    """Epoch of the one skeleton upsampling; before it: shifting and growth, after it: merge and joints."""
+    t_o: float = 0.95
+    """Merge bones whose flow-derived motion directions have cosine > t_o in every frame (0.99 finer, 0.90 coarser)."""
+    t_d: float = 0.25
+    """Create a joint in a bone whose length varies over frames by more than t_d of its median length."""
+    t_r: float = 0.4
+    """Joint position: mean of the vertices with both bones' weights >= t_r."""
+    growth_factor: float = 2.0
+    """Grow an end part whose extent passed growth_factor x its initial extent."""
+    growth_sections: int = 2
+    """Sections k a grown end part is split into."""
+    sharpness: float = 0.6667
+    """Precision of a new bone = sharpness / variance of its section's vertices."""
+    max_bones: int = 40
+    """Never grow the skeleton beyond this many bones."""
+    upsample_min_extent: float = 0.0
+    """Upsampling splits only bones whose extent is at least this fraction of the largest."""
+    merge_mode: str = "greedy"
+    """greedy (each bone merges at most once per M-step) or components (all agreeing neighbours at once)."""
+    merge_temperature: float = 1.0
+    """Temperature of the log-space softmax of the merge weights (sum of skinning weights per bone)."""
+    min_visible: float = 0.1
+    """Bone flow: skip frames where less than this fraction of a bone's weight is visible."""
+    min_mass: float = 3.0
+    """Bone flow: skip frames where a bone's visible weight mass (in vertices) is below this."""
+    min_flow: float = 0.5
+    """Motion similarity: frames where both bones move less than this (crop pixels) say nothing about direction."""
+    min_frames: int = 2
+    """Motion similarity: bone pairs with fewer usable frames are never merged."""
+    far_fraction: float = 0.1
+    """Bone endpoints of a one-joint bone: mean of its farthest fraction of part vertices."""
+    virtual_bones: int = 25
+    """Bone count of the virtual-bones baseline."""
+
+
+@dataclass
 class OutputConfig:
     """What the run directory receives."""
 
@@ -138,6 +182,7 @@ class Config:
     data: DataConfig = field(default_factory=DataConfig)
     coarse: CoarseConfig = field(default_factory=CoarseConfig)
     motion: MotionConfig = field(default_factory=MotionConfig)
+    skeleton: SkeletonConfig = field(default_factory=SkeletonConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     seed: int = 0
     """Seed for every random choice."""

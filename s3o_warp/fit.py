@@ -211,6 +211,14 @@ class Fitter:
         self._stop = False
         self._bad = 0
         self._good = None
+        from s3o_warp.mstep import SkeletonState, refresh_joints, virtual_bones_init
+
+        parents = np.asarray(coarse_res.parents, np.int64)
+        if cfg.skeleton.method == "virtual":
+            parents = virtual_bones_init(self.model, cfg)
+            self.opt = self._make_optimizer()
+        self.skel = SkeletonState(parents=parents)
+        refresh_joints(self.model, self.skel, cfg.skeleton.t_r)
 
     # -- NaN/Inf guard ------------------------------------------------------------------------------
     @staticmethod
@@ -446,13 +454,15 @@ class Fitter:
                         "loss": float(total),
                         "iou": iou,
                         "lr": {g["name"]: g["lr"] for g in self.opt.param_groups},
-                        "terms": {k: float(v) for k, (w, v) in terms.items()},
-                        "weighted": {k: float(w * v) for k, (w, v) in terms.items()},
+                        "terms": {k: float(v.detach()) for k, (w, v) in terms.items()},
+                        "weighted": {k: float(w * v.detach()) for k, (w, v) in terms.items()},
                     }
                     self.history.append(rec)
                     with open(self.log_file, "a") as fh:
                         fh.write(json.dumps(rec) + "\n")
                     bar.set_postfix(loss=f"{float(total):.4f}", iou=f"{iou:.3f}")
+                if phase == "joint" and self._epoch_end(n):
+                    self._m_step(n)
                 if self._stop:
                     bar.close()
                     path = self.save_checkpoint()
@@ -462,6 +472,21 @@ class Fitter:
             bar.close()
         self.phase, self.step = "done", 0
         self.save_checkpoint()
+
+    # -- skeleton learning ---------------------------------------------------------------------------
+    def steps_per_epoch(self, n: int) -> int:
+        return max(1, math.ceil(n / max(1, self.cfg.skeleton.epochs)))
+
+    def _epoch_end(self, n: int) -> bool:
+        spe = self.steps_per_epoch(n)
+        return self.step % spe == 0 and self.step < n
+
+    def _m_step(self, n: int) -> None:
+        from s3o_warp.mstep import m_step
+
+        epoch = self.step // self.steps_per_epoch(n) - 1
+        if m_step(self.model, self.opt, self.data, self.cfg, self.skel, epoch):
+            self._good = None  # shapes changed: the NaN roll-back target is taken anew
 
     # -- checkpoints --------------------------------------------------------------------------------
     def state(self) -> dict:
@@ -474,6 +499,7 @@ class Fitter:
             "model": self.model.state_dict(),
             "optimizer": self.opt.state_dict(),
             "generator": self.gen.get_state(),
+            "skeleton": self.skel.to_dict(),
             "torch_rng": torch.get_rng_state(),
             "config": to_dict(self.cfg),
         }
@@ -489,6 +515,19 @@ class Fitter:
             old.unlink(missing_ok=True)
         return path
 
+    def _resize_bones(self, B: int) -> None:
+        """Give the model B bones (values are overwritten by the checkpoint right after)."""
+        m = self.model
+        if m.num_bones == B:
+            return
+        T = m.num_frames
+        kw = dict(dtype=m.bone_centers.dtype, device=m.bone_centers.device)
+        m.bone_centers = torch.nn.Parameter(torch.zeros(B, 3, **kw))
+        m.bone_quat = torch.nn.Parameter(torch.zeros(B, 4, **kw))
+        m.bone_log_scales = torch.nn.Parameter(torch.zeros(B, 3, **kw))
+        m.bone_aa = torch.nn.Parameter(torch.zeros(T, B, 3, **kw))
+        m.bone_t = torch.nn.Parameter(torch.zeros(T, B, 3, **kw))
+
     def load_checkpoint(self, path: Path) -> None:
         st = torch.load(path, map_location=self.device, weights_only=False)
         if st.get("version") != CHECKPOINT_VERSION:
@@ -501,7 +540,11 @@ class Fitter:
                 f"checkpoint {path} belongs to sequence '{st.get('sequence')}' ({st.get('num_frames')} frames), "
                 f"not '{self.data.name}' ({self.data.num_frames} frames); use another --out or drop --resume"
             )
+        self._resize_bones(st["model"]["bone_centers"].shape[0])
         self.model.load_state_dict(st["model"])
+        from s3o_warp.mstep import SkeletonState
+
+        self.skel = SkeletonState.from_dict(st["skeleton"])
         self.phase, self.step = st["phase"], st["step"]
         if self.phase in PHASES:
             self.opt = self._make_optimizer()

@@ -43,17 +43,23 @@ def rig_from_model(fitter):
     bind[:, :3, 3] = _np(m.bone_centers)
     precisions = _np(m.precisions())
     joints, pairs = None, None
-    cj = getattr(fitter.coarse, "joints", None)
-    if cj is not None and len(cj[0]):
-        pairs = np.asarray(cj[0], dtype=np.int64)
-        joints = np.asarray(cj[1], dtype=np.float64)
+    sk = fitter.skel
+    if len(sk.joints):
+        pairs = np.asarray(sk.joints, dtype=np.int64)
+        joints = np.asarray(sk.joint_positions, dtype=np.float64)
+    lengths = None
+    if pairs is not None:
+        from s3o_warp import skeleton as skl
+
+        X, Wn = _np(m.verts), _np(W)
+        lengths = skl.bone_lengths(skl.bone_endpoints(X, Wn, pairs, t_r=fitter.cfg.skeleton.t_r), X)
     return Rig(
         verts=_np(m.verts).astype(np.float32),
         faces=m.faces.cpu().numpy().astype(np.int32),
         colors=_np(m.colors()).astype(np.float32),
         weights=_np(W).astype(np.float32),
         bone_names=[f"bone_{b:02d}" for b in range(B)],
-        parents=np.asarray(fitter.coarse.parents, dtype=np.int64),
+        parents=np.asarray(fitter.skel.parents, dtype=np.int64),
         bind=bind,
         bone_motion=_h(_np(m.bone_rt(frames))),
         root=_h(_np(m.root_rt(frames))),
@@ -65,6 +71,7 @@ def rig_from_model(fitter):
         joint_pairs=pairs,
         centres=_np(m.bone_centers),
         precisions=precisions,
+        lengths=lengths,
     )
 
 

@@ -1,0 +1,192 @@
+"""The M-step of the fit (paper 3.4, Algorithm 1): adapt the skeleton to the current mesh and motion.
+
+Called by the fit between epochs of the joint phase. For epoch e (0-based, ``e1`` from the config):
+
+- e < e1: bone shifting (eq. 5) and skeleton growth at stretched end parts;
+- e == e1: one skeleton upsampling;
+- e > e1: physically constrained refinement: merge neighbouring bones whose flow-derived motion
+  directions agree in every frame (eq. 8, cosine > t_o) and split bones whose length varies over the
+  frames (eq. 6 corrected) into two bones joined at a new joint.
+
+After every edit the joints (bone pairs of the kinematic tree) are re-derived and placed at the mean of
+the vertices both bones weigh >= t_r. Per-frame motion and optimiser state are carried over by
+``skeleton.apply_edit`` so the loss does not jump.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from s3o_warp import skeleton as sk
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class SkeletonState:
+    """What the M-step keeps between epochs (checkpointed with the model)."""
+
+    parents: np.ndarray  # (B,) kinematic tree, -1 root
+    joints: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))  # (J, 2) bone pairs
+    joint_positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (J, 3) object frame
+    extents: np.ndarray | None = None  # (B,) growth reference extents
+    history: list = field(default_factory=list)  # one dict per M-step: epoch, operation, bone counts
+
+    def to_dict(self) -> dict:
+        return {
+            "parents": self.parents.tolist(),
+            "joints": self.joints.tolist(),
+            "joint_positions": self.joint_positions.tolist(),
+            "extents": None if self.extents is None else self.extents.tolist(),
+            "history": self.history,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "SkeletonState":
+        return cls(
+            parents=np.asarray(d["parents"], np.int64),
+            joints=np.asarray(d["joints"], np.int64).reshape(-1, 2),
+            joint_positions=np.asarray(d["joint_positions"], np.float64).reshape(-1, 3),
+            extents=None if d["extents"] is None else np.asarray(d["extents"], np.float64),
+            history=list(d["history"]),
+        )
+
+
+def _xw(model):
+    X = model.verts.detach().cpu().double().numpy()
+    W = model.skinning().detach().cpu().double().numpy()
+    return X, W
+
+
+def _q(model) -> np.ndarray:
+    return model.precisions().detach().cpu().double().numpy()
+
+
+def refresh_joints(model, state: SkeletonState, t_r: float) -> None:
+    """Joints = the kinematic tree's (parent, child) pairs, placed at the mean of the shared vertices."""
+    X, W = _xw(model)
+    state.joints = sk.tree_joints(state.parents)
+    state.joint_positions = sk.joint_positions(X, W, state.joints, t_r=t_r) if len(state.joints) else np.zeros((0, 3))
+
+
+def _apply(model, opt, state: SkeletonState, edit, what: str, epoch: int, t_r: float) -> bool:
+    if not edit.changed:
+        return False
+    b0 = model.num_bones
+    sk.apply_edit(model, opt, edit)
+    state.parents = np.asarray(edit.parents, np.int64)
+    if edit.extents is not None:
+        state.extents = np.asarray(edit.extents, np.float64)
+    refresh_joints(model, state, t_r)
+    state.history.append({"epoch": epoch, "operation": what, "bones_before": b0, "bones_after": model.num_bones})
+    log.info("M-step epoch %d: %s, %d -> %d bones", epoch, what, b0, model.num_bones)
+    return True
+
+
+@torch.no_grad()
+def bone_motion_similarity(model, data, cfg) -> np.ndarray:
+    """Eq. 4 + 8: per-bone flow over all frames (visible vertices only), min-over-frames cosine ``(B, B)``."""
+    from s3o_warp.kernels.visibility import vertex_visibility
+
+    sc = cfg.skeleton
+    T = data.num_frames
+    W = model.skinning()
+    FB, valid = [], []
+    chunk = max(2, cfg.motion.batch_frames)
+    for s in range(0, T - 1, chunk - 1):
+        fr = torch.arange(s, min(s + chunk, T), device=model.verts.device)
+        if len(fr) < 2:
+            break
+        v = model(fr, weights=W)
+        K = model.intrinsics_crop(fr)
+        vis = vertex_visibility(v, model.faces)
+        fb, ok = sk.bone_flow(v, K, data.flow_fwd[fr[:-1]], vis, W, conf=data.conf_fwd[fr[:-1]],
+                              min_visible=sc.min_visible, min_mass=sc.min_mass)
+        FB.append(fb)
+        valid.append(ok)
+    FB = torch.cat(FB, 0)
+    valid = torch.cat(valid, 0)
+    return sk.motion_similarity(FB, valid, min_flow=sc.min_flow, min_frames=sc.min_frames).cpu().double().numpy()
+
+
+@torch.no_grad()
+def bone_length_variation(model, data, state: SkeletonState, cfg) -> np.ndarray:
+    """Which bones' lengths vary over frames (eq. 6 corrected), ``(B,)`` bool, and the endpoints used."""
+    sc = cfg.skeleton
+    X, W = _xw(model)
+    E = sk.bone_endpoints(X, W, state.joints, t_r=sc.t_r, far_fraction=sc.far_fraction)
+    lengths = []
+    Wt = model.skinning()
+    for s in range(0, data.num_frames, cfg.motion.batch_frames):
+        fr = torch.arange(s, min(s + cfg.motion.batch_frames, data.num_frames), device=model.verts.device)
+        lengths.append(sk.bone_lengths_per_frame(E, model.posed_object(fr, weights=Wt).cpu().double().numpy()))
+    return sk.create_joints(np.concatenate(lengths, 0), t_d=sc.t_d), E
+
+
+def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int) -> bool:
+    """One M-step after epoch ``epoch`` of the joint phase; returns whether the skeleton changed."""
+    sc = cfg.skeleton
+    if sc.method != "s3o":
+        return False
+    changed = False
+    X, W = _xw(model)
+    C = model.bone_centers.detach().cpu().double().numpy()
+    Q = _q(model)
+    if state.extents is None:
+        state.extents = sk.part_extents(X, W)
+    if epoch < sc.e1:
+        # bone shifting (eq. 5): centres to their parts' centroids, motion carried over exactly
+        C2 = sk.shift_bones(X, W, C)
+        if np.abs(C2 - C).max() > 1e-9:
+            edit = sk.SkeletonEdit(centers=C2, precisions=Q, parents=state.parents.copy(),
+                                   sources=[[(b, 1.0)] for b in range(len(C))],
+                                   kept=np.zeros(len(C), bool), extents=state.extents)
+            changed |= _apply(model, opt, state, edit, "shift", epoch, sc.t_r)
+            X, W = _xw(model)
+            C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
+        anchors = sk.parent_anchors(state.parents, state.joints, state.joint_positions) if len(state.joints) else None
+        edit = sk.grow_skeleton(X, W, C, Q, state.parents, state.extents, growth_factor=sc.growth_factor,
+                                sections=sc.growth_sections, anchors=anchors, sharpness=sc.sharpness)
+        if model.num_bones + (edit.num_bones - model.num_bones) <= sc.max_bones:
+            changed |= _apply(model, opt, state, edit, "grow", epoch, sc.t_r)
+    elif epoch == sc.e1:
+        edit = sk.upsample_skeleton(X, W, C, Q, state.parents, min_relative_extent=sc.upsample_min_extent,
+                                    sharpness=sc.sharpness, extents=state.extents)
+        if edit.num_bones <= sc.max_bones:
+            changed |= _apply(model, opt, state, edit, "upsample", epoch, sc.t_r)
+    else:
+        S = bone_motion_similarity(model, data, cfg)
+        edit = sk.merge_bones(S, W, C, Q, state.parents, t_o=sc.t_o, mode=sc.merge_mode,
+                              temperature=sc.merge_temperature, extents=state.extents)
+        changed |= _apply(model, opt, state, edit, "merge", epoch, sc.t_r)
+        if len(state.joints):
+            split, E = bone_length_variation(model, data, state, cfg)
+            if split.any() and model.num_bones + int(split.sum()) <= sc.max_bones:
+                X, W = _xw(model)
+                C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
+                edit = sk.split_at_joints(X, W, C, Q, state.parents, E, split, sharpness=sc.sharpness,
+                                          extents=state.extents)
+                changed |= _apply(model, opt, state, edit, "joint", epoch, sc.t_r)
+    if not changed:
+        state.history.append({"epoch": epoch, "operation": "none", "bones_before": model.num_bones,
+                              "bones_after": model.num_bones})
+    return changed
+
+
+def virtual_bones_init(model, cfg) -> np.ndarray:
+    """The LASR-like baseline: k-means bones over the canonical surface, a flat tree (all children of bone 0)."""
+    from s3o_warp.skeleton import precision_to_quat_scales
+
+    X = model.verts.detach().cpu().double().numpy()
+    C, Q = sk.virtual_bones(X, cfg.skeleton.virtual_bones, seed=cfg.seed)
+    q, s = precision_to_quat_scales(Q)
+    dt = dict(dtype=model.bone_centers.dtype, device=model.bone_centers.device)
+    sk.remap_bones(model, None, [[(0, 1.0)] for _ in range(len(C))], torch.as_tensor(C, **dt),
+                   torch.as_tensor(q, **dt), torch.as_tensor(s, **dt))
+    parents = np.zeros(len(C), np.int64)
+    parents[0] = -1
+    return parents
