@@ -74,9 +74,9 @@ class MotionConfig:
     warmup_sweep: float = 0.5
     """Fraction of the warm-up that sweeps windows outward from the canonical frame, each new frame starting
     from its nearest already-fitted neighbour's pose (0 = random windows only)."""
-    steps: int = 600
+    steps: int = 1200
     """Steps of the joint shape + motion + camera phase after the warm-up."""
-    lr_motion: float = 0.02
+    lr_motion: float = 0.01
     """Adam learning rate of root and bone rotations/translations."""
     lr_shape: float = 0.002
     """Adam learning rate of the canonical vertices."""

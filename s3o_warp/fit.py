@@ -426,10 +426,12 @@ class Fitter:
             bar = tqdm(total=n, initial=self.step, desc=f"{phase:>6}", dynamic_ncols=True, leave=True)
             while self.step < n:
                 self.opt.zero_grad(set_to_none=True)
+                frames = None
                 if phase == "coarse":
                     terms, sil, mask = self.coarse_losses()
                 else:
-                    terms, sil, mask = self.motion_losses(self.window())
+                    frames = self.window()
+                    terms, sil, mask = self.motion_losses(frames)
                 total = sum(w * v for w, v in terms.values())
                 bad = self._non_finite(terms, total)
                 if bad is None:
@@ -438,7 +440,7 @@ class Fitter:
                 if bad is not None:
                     self._recover(bad)
                     continue
-                self.opt.step()
+                self._step_window(frames)
                 self.step += 1
                 self._bad = 0
                 if self.step % self.cfg.motion.snapshot_every == 0 or self._good is None:
@@ -472,6 +474,24 @@ class Fitter:
             bar.close()
         self.phase, self.step = "done", 0
         self.save_checkpoint()
+
+    def _step_window(self, frames: torch.Tensor | None) -> None:
+        """Optimiser step that moves per-frame parameters only for the frames of this batch.
+
+        Adam keeps momentum per entry, so frames outside the window would otherwise keep drifting on
+        stale momentum between their visits (visible as jitter and a growing flow error).
+        """
+        if frames is None:
+            self.opt.step()
+            return
+        m = self.model
+        keep = torch.ones(m.num_frames, dtype=torch.bool, device=frames.device)
+        keep[frames] = False
+        per_frame = (m.root_aa, m.root_t, m.bone_aa, m.bone_t, m.pp)
+        saved = [p.data[keep].clone() for p in per_frame]
+        self.opt.step()
+        for p, v in zip(per_frame, saved):
+            p.data[keep] = v
 
     # -- skeleton learning ---------------------------------------------------------------------------
     def steps_per_epoch(self, n: int) -> int:
