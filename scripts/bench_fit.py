@@ -1,0 +1,160 @@
+#!/usr/bin/env python
+"""Fit benchmark: accuracy and wall time of whole fits, written to ``benchmarks/fit-<device>.json``.
+
+    python scripts/bench_fit.py --device cpu --cases quadruped [fox horse cows dog] [--methods s3o virtual]
+                                [--seeds 0 1 2] [--preset default] [--set key=value ...] [--out-dir DIR]
+
+Cases: ``quadruped`` (the built-in default shot, the README's main command), ``fox`` (Khronos Fox Walk,
+48 frames, 320x240, 90-degree orbit), ``horse`` (Quaternius Horse Walk, 48 frames, 320x240, 120-degree
+orbit), ``cows`` / ``dog`` (DAVIS with BADJA keypoints). Cases that need ../shared/data skip with a
+message when it is absent. Each fit's metrics, per-phase wall time (from log.jsonl) and total time
+are recorded with the command, device, versions and git commit. Results are merged into the JSON file
+(one entry per case/method/seed), so cases can be run in separate invocations.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = Path(os.environ.get("S3O_SHARED_DATA", REPO.parent / "shared" / "data"))
+
+SYNTH = {
+    "quadruped": dict(source="quadruped"),
+    "fox": dict(source="gltf/khronos_Fox.glb", clip="Walk", frames=48, fps=30.0, size=(320, 240), azim=(-45.0, 45.0), elev=15.0),
+    "horse": dict(source="gltf/quaternius_Horse.glb", clip="Walk", frames=48, fps=30.0, size=(320, 240), azim=(-60.0, 60.0), elev=15.0),
+}
+DAVIS = {"cows": "cows", "dog": "dog"}
+
+
+def prepare_case(case: str, work: Path) -> Path | None:
+    """The sequence folder of a case (rendered or converted on first use), or None when data is missing."""
+    from s3o_warp.synth import make_sequence
+
+    seq = work / "sequences" / case
+    if case in SYNTH:
+        spec = dict(SYNTH[case])
+        src = spec.pop("source")
+        if src != "quadruped":
+            src = DATA / src
+            if not src.is_file():
+                print(f"bench_fit: skip {case}: {src} not found (set S3O_SHARED_DATA)", file=sys.stderr)
+                return None
+        if not (seq / "images").is_dir():
+            make_sequence(seq, source=src, **spec)
+        return seq
+    if case in DAVIS:
+        name = DAVIS[case]
+        img = DATA / "davis" / "JPEGImages" / "480p" / name
+        if not img.is_dir():
+            print(f"bench_fit: skip {case}: {img} not found", file=sys.stderr)
+            return None
+        if not (seq / "keypoints.json").is_file():
+            import shutil
+
+            from s3o_warp.badja import badja_to_keypoints, write_keypoints
+
+            seq.mkdir(parents=True, exist_ok=True)
+            for sub, src in (("images", img), ("masks", DATA / "davis" / "Annotations" / "480p" / name)):
+                if not (seq / sub).exists():
+                    os.symlink(src, seq / sub) if hasattr(os, "symlink") else shutil.copytree(src, seq / sub)
+            kp = badja_to_keypoints(DATA / "badja" / f"{name}.json", frame_size=(480, 854))
+            write_keypoints(kp, seq / "keypoints.json")
+        return seq
+    raise SystemExit(f"bench_fit: unknown case {case}; choose from {', '.join(list(SYNTH) + list(DAVIS))}")
+
+
+def phase_times(run: Path) -> dict:
+    recs = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines() if line.strip()]
+    out, prev = {}, 0.0
+    for phase in dict.fromkeys(r["phase"] for r in recs):
+        last = [r for r in recs if r["phase"] == phase][-1]["seconds"]
+        out[phase] = round(last - prev, 2)
+        prev = last
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--cases", nargs="+", default=["quadruped"])
+    ap.add_argument("--methods", nargs="+", default=["s3o"], help="skeleton.method values: s3o, virtual, fixed")
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0])
+    ap.add_argument("--preset", default="default")
+    ap.add_argument("--set", dest="overrides", action="append", default=[])
+    ap.add_argument("--out-dir", default=str(REPO / "runs" / "bench"))
+    args = ap.parse_args(argv)
+
+    import torch
+
+    from s3o_warp.config import make_config
+    from s3o_warp.fit import fit, resolve_device
+
+    device = resolve_device(args.device)
+    work = Path(args.out_dir)
+    dest = REPO / "benchmarks" / f"fit-{device.type}.json"
+    doc = json.loads(dest.read_text()) if dest.is_file() else {"results": []}
+    doc.update(
+        command=" ".join(["python"] + sys.argv),
+        device=str(device),
+        device_name=torch.cuda.get_device_name(device) if device.type == "cuda" else (platform.processor() or platform.machine()),
+        cpu_count=os.cpu_count(),
+        versions=_versions(),
+        git_commit=_git(),
+    )
+    for case in args.cases:
+        seq = prepare_case(case, work)
+        if seq is None:
+            continue
+        for method in args.methods:
+            for seed in args.seeds:
+                cfg = make_config(args.preset, overrides=[f"skeleton.method={method}"] + args.overrides, seed=seed)
+                run = work / "runs" / f"{case}-{method}-{seed}"
+                t0 = time.perf_counter()
+                metrics = fit(seq, run, cfg, device)
+                wall = time.perf_counter() - t0
+                entry = {
+                    "case": case, "method": method, "seed": seed, "preset": args.preset, "overrides": args.overrides,
+                    "wall_seconds": round(wall, 1), "phase_seconds": phase_times(run),
+                    "iou": (metrics.get("mask_iou") or {}).get("mean"),
+                    "pck_t": (metrics.get("pck_t") or {}).get("pck"),
+                    "chamfer": (metrics.get("shape_3d") or {}).get("chamfer"),
+                    "fscore": (metrics.get("shape_3d") or {}).get("fscore"),
+                    "skeleton": {k: v for k, v in (metrics.get("skeleton") or {}).items() if k != "per_frame"},
+                    "bones": len(json.loads((run / "skeleton.json").read_text())["bones"]),
+                }
+                doc["results"] = [r for r in doc["results"] if not (r["case"] == case and r["method"] == method and r["seed"] == seed and r.get("preset") == args.preset)]
+                doc["results"].append(entry)
+                print(json.dumps(entry), flush=True)
+                dest.parent.mkdir(exist_ok=True)
+                tmp = dest.with_suffix(".json.tmp")
+                tmp.write_text(json.dumps(doc, indent=2, default=float))
+                os.replace(tmp, dest)
+    print(f"wrote {dest}")
+    return 0
+
+
+def _versions():
+    import numpy
+    import torch
+    import warp
+
+    return {"python": platform.python_version(), "torch": torch.__version__, "warp": warp.config.version, "numpy": numpy.__version__}
+
+
+def _git():
+    try:
+        return subprocess.check_output(["git", "rev-parse", "HEAD"], cwd=REPO, text=True).strip()
+    except Exception:
+        return None
+
+
+if __name__ == "__main__":
+    sys.exit(main())
