@@ -31,6 +31,10 @@ class DataConfig:
     """Grey-level and RGB masks: foreground = value > mask_threshold (0-255 scale)."""
     crop_background: tuple[int, int, int] = (0, 0, 0)
     """RGB colour given to crop pixels that fall outside the frame (masks get 0 there)."""
+    largest_blob: bool = True
+    """Masks with several disconnected blobs: keep the largest (a warning names the frames); false keeps all."""
+    border_weight: float = 0.3
+    """Silhouette-loss weight of frames where the object touches the frame border (it leaves the frame)."""
     frame_cache_size: int = 4
     """Decoded frames (image and mask) a sequence keeps in memory; others are read from disk on demand."""
 

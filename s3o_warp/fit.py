@@ -51,6 +51,7 @@ class FitData:
     flow_fwd: torch.Tensor  # (T-1,S,S,2) crop-t pixels
     conf_fwd: torch.Tensor  # (T-1,S,S) in [0,1]
     sequence_dir: Path
+    frame_weight: torch.Tensor | None = None  # (T,) silhouette weight (objects leaving the frame count less)
 
     @property
     def num_frames(self) -> int:
@@ -92,6 +93,9 @@ def prepare_data(sequence_dir: Path, cfg: Config, run_dir: Path, device: torch.d
         flow_fwd=torch.from_numpy(fwd).to(**dev),
         conf_fwd=torch.from_numpy(conf).to(**dev),
         sequence_dir=Path(sequence_dir),
+        frame_weight=torch.as_tensor(
+            np.where(np.asarray(seq.touches_border), cfg.data.border_weight, 1.0), dtype=torch.float32, device=device
+        ),
     )
 
 
@@ -383,7 +387,8 @@ class Fitter:
         K = m.intrinsics_crop(frames)
         sil = soft_silhouette(verts, m.faces, K, (S, S), sigma=self.sigma(mc.sigma, mc.sigma_final))
         mask = d.masks[frames]
-        terms = {"sil": (mc.w_sil, L.silhouette_loss(sil, mask))}
+        fw = d.frame_weight[frames] if d.frame_weight is not None else None
+        terms = {"sil": (mc.w_sil, L.silhouette_loss(sil, mask, fw))}
         face_index, bary, _depth = rasterize(verts, m.faces, K, (S, S))
         fg = (face_index >= 0).float()
         if mc.w_color > 0:
@@ -606,16 +611,27 @@ def resolve_device(name: str | None) -> torch.device:
     return torch.device("cpu")
 
 
+def _check_writable(out_dir: Path) -> None:
+    """The run directory (or its nearest existing parent) must be writable: one clear line otherwise."""
+    p = out_dir
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    if not p.is_dir() or not os.access(p, os.W_OK):
+        raise InputError(f"run directory {out_dir} is not writable ({p} is not a writable folder); choose another --out")
+
+
 def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool = False) -> dict:
     """Fit one sequence and write the run directory; returns the metrics dict."""
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    if not os.access(out_dir, os.W_OK):
-        raise InputError(f"run directory {out_dir} is not writable; choose another --out")
+    _check_writable(out_dir)
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
+    data = prepare_data(Path(sequence_dir), cfg, out_dir, device)  # validates the input before writing anything
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError(f"run directory {out_dir} cannot be created ({e.strerror}); choose another --out") from None
     save_toml(cfg, out_dir / "config.toml")
-    data = prepare_data(Path(sequence_dir), cfg, out_dir, device)
     coarse_res = coarse_model(data, cfg)
     fitter = Fitter(data, coarse_res, cfg, out_dir, device)
     ck = latest_checkpoint(out_dir) if resume else None

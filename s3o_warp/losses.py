@@ -11,9 +11,15 @@ import torch
 from s3o_warp.geometry import project
 
 
-def silhouette_loss(sil: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Eq. 10 as a mean squared error between the soft silhouette ``(t,S,S)`` and the mask ``(t,S,S)``."""
-    return ((sil - mask) ** 2).mean()
+def silhouette_loss(sil: torch.Tensor, mask: torch.Tensor, frame_weight: torch.Tensor | None = None) -> torch.Tensor:
+    """Eq. 10 as a mean squared error between the soft silhouette ``(t,S,S)`` and the mask ``(t,S,S)``.
+
+    ``frame_weight`` ``(t,)`` scales each frame (frames where the object leaves the image count less).
+    """
+    per_frame = ((sil - mask) ** 2).flatten(1).mean(1)
+    if frame_weight is None:
+        return per_frame.mean()
+    return (per_frame * frame_weight).sum() / frame_weight.sum().clamp_min(1e-6)
 
 
 def soft_iou(sil: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

@@ -309,6 +309,14 @@ def crop_frame(
     return Crop(image=img, mask=msk, crop_to_frame=c2f, frame_to_crop=np.linalg.inv(c2f), bbox=bbox)
 
 
+def _clean_mask(mask: np.ndarray, cfg) -> np.ndarray:
+    """The mask as the fit uses it: its largest blob when ``data.largest_blob`` (else unchanged)."""
+    if not getattr(cfg, "largest_blob", False) or not mask.any():
+        return mask
+    n, _labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    return mask if n <= 2 else largest_component(mask)
+
+
 def largest_component(mask: np.ndarray) -> np.ndarray:
     """The largest 8-connected foreground component of a boolean ``(H, W)`` mask (all False if empty)."""
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
@@ -578,7 +586,7 @@ class Sequence:
         """Frame k's foreground as ``(H, W) bool`` (read-only array; decoded on demand)."""
         k = self._index(k)
         return self._cached(
-            ("mask", k), lambda: _read_mask(self.mask_files[k], self.cfg.object_id, self.cfg.mask_threshold)
+            ("mask", k), lambda: _clean_mask(_read_mask(self.mask_files[k], self.cfg.object_id, self.cfg.mask_threshold), self.cfg)
         )
 
     def frame_digest(self, k: int) -> str:
@@ -756,10 +764,14 @@ def open_sequence(
 
     bboxes = np.zeros((n_frames, 4), dtype=np.int64)
     touches = np.zeros(n_frames, dtype=bool)
+    multi_blob: list[int] = []
     digests: list[str] = []
     H, W = size
     for k, mf in enumerate(tqdm(mask_files, desc=f"{seq_name}: masks", unit="mask", leave=False, disable=None)):
-        m = _read_mask(mf, cfg.object_id, cfg.mask_threshold)
+        raw = _read_mask(mf, cfg.object_id, cfg.mask_threshold)
+        m = _clean_mask(raw, cfg)
+        if m is not raw and (m != raw).any():
+            multi_blob.append(k)
         if m.shape != (H, W):
             frame = image_files[k] if image_files is not None else f"{video_file} frame {k}"
             raise InputError(
@@ -780,6 +792,16 @@ def open_sequence(
         touches[k] = bool(m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any())
         digests.append(hashlib.sha256(np.packbits(m).tobytes() + str(m.shape).encode()).hexdigest())
 
+    if multi_blob:
+        log.warning(
+            "%s: %d mask(s) have several disconnected blobs (first: %s); the largest blob is used "
+            "(set data.largest_blob=false to keep them all)", seq_name, len(multi_blob), mask_files[multi_blob[0]]
+        )
+    if touches.any():
+        log.warning(
+            "%s: the object touches the frame border in %d frame(s) (first: %s); those frames are "
+            "down-weighted (data.border_weight)", seq_name, int(touches.sum()), mask_files[int(np.argmax(touches))]
+        )
     keypoints = extras / "keypoints.json" if extras is not None and (extras / "keypoints.json").is_file() else None
     gt = extras / "ground_truth" if extras is not None and (extras / "ground_truth").is_dir() else None
     log.info("%s: %d frames %dx%d at %.3g fps", seq_name, n_frames, W, H, fps)
