@@ -419,8 +419,30 @@ class Fitter:
         terms["bone_reg"] = (mc.w_bone_reg, (m.bone_t[frames] ** 2).mean())
         return terms, sil, mask
 
+    @torch.no_grad()
+    def hard_iou(self) -> float:
+        """Mean over all frames of the hard-render IoU with the crop masks (what the metrics measure)."""
+        from s3o_warp.kernels.raster import rasterize
+
+        m, d, S = self.model, self.data, self.data.crop_size
+        W = m.skinning()
+        ious = []
+        for s in range(0, d.num_frames, self.cfg.motion.batch_frames):
+            fr = torch.arange(s, min(s + self.cfg.motion.batch_frames, d.num_frames), device=self.device)
+            fi, _, _ = rasterize(m(fr, weights=W), m.faces, m.intrinsics_crop(fr), (S, S))
+            ious.append(L.soft_iou((fi >= 0).float(), d.masks[fr]))
+        return float(torch.cat(ious).mean())
+
+    def _log(self, rec: dict) -> None:
+        self.history.append(rec)
+        with open(self.log_file, "a") as fh:
+            fh.write(json.dumps(rec) + "\n")
+
     # -- loop ---------------------------------------------------------------------------------------
     def run(self) -> None:
+        if self.phase == PHASES[0] and self.step == 0:
+            self._log({"phase": "eval", "step": 0, "seconds": round(time.perf_counter() - self.t0, 3),
+                       "what": "initial", "iou_all_frames": self.hard_iou()})
         for phase in PHASES[PHASES.index(self.phase):]:
             if phase != self.phase:
                 self.phase, self.step = phase, 0
@@ -464,9 +486,7 @@ class Fitter:
                         "terms": {k: float(v.detach()) for k, (w, v) in terms.items()},
                         "weighted": {k: float(w * v.detach()) for k, (w, v) in terms.items()},
                     }
-                    self.history.append(rec)
-                    with open(self.log_file, "a") as fh:
-                        fh.write(json.dumps(rec) + "\n")
+                    self._log(rec)
                     bar.set_postfix(loss=f"{float(total):.4f}", iou=f"{iou:.3f}")
                 if phase == "joint" and self._epoch_end(n):
                     self._m_step(n)
@@ -477,6 +497,8 @@ class Fitter:
                 if self.step % self.cfg.output.checkpoint_every == 0 and self.step < n:
                     self.save_checkpoint()
             bar.close()
+        self._log({"phase": "eval", "step": 0, "seconds": round(time.perf_counter() - self.t0, 3),
+                   "what": "final", "iou_all_frames": self.hard_iou()})
         self.phase, self.step = "done", 0
         self.save_checkpoint()
 

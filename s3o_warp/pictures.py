@@ -114,6 +114,9 @@ def loss_plot(run: Path, history: list[dict]) -> Path | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    history = [h for h in history if "loss" in h]
+    if not history:
+        return None
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.5))
     x = 0
     for phase in dict.fromkeys(h["phase"] for h in history):

@@ -73,6 +73,7 @@ def prepare_case(case: str, work: Path) -> Path | None:
 
 def phase_times(run: Path) -> dict:
     recs = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines() if line.strip()]
+    recs = [r for r in recs if r["phase"] != "eval"]
     out, prev = {}, 0.0
     for phase in dict.fromkeys(r["phase"] for r in recs):
         last = [r for r in recs if r["phase"] == phase][-1]["seconds"]

@@ -58,9 +58,9 @@ def test_small_fit_raises_iou_and_writes_the_run_directory(tiny_sequence, tmp_pa
     run = tmp_path / "run"
     metrics = fit(tiny_sequence, run, cfg, torch.device("cpu"))
     log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
-    first = next(r for r in log if r["phase"] == "warmup")["iou"]
-    last = log[-1]["iou"]
-    assert last > 0.75 and last > first, (first, last)
+    evals = {r["what"]: r["iou_all_frames"] for r in log if r["phase"] == "eval"}
+    # hard-render IoU over all frames: the coarse model at the start against the end of the fit
+    assert evals["final"] > evals["initial"] + 0.1, evals
     for name in ("config.toml", "canonical.ply", "skeleton.json", "motion.npz", "metrics.json", "quad.usdc", "quad.glb"):
         assert (run / name).is_file(), name
     assert metrics["mask_iou"]["mean"] > 0.6
