@@ -75,6 +75,13 @@ class MotionConfig:
     """Frames per optimisation step."""
     warmup_steps: int = 200
     """Steps with the mesh frozen (camera and motion only)."""
+    hypotheses: int = 1
+    """Root-rotation hypotheses tried at the start of the warm-up (1 = off): each assumes the camera turns
+    about the object's vertical axis at a constant rate; a short fit scores each and the best is kept."""
+    hypothesis_max_rate: float = 2.0
+    """Largest turn rate of the hypotheses, degrees per frame (rates spread evenly in +-this, 0 included)."""
+    hypothesis_steps: int = 30
+    """Warm-up steps spent scoring each hypothesis."""
     warmup_sweep: float = 0.5
     """Fraction of the warm-up that sweeps windows outward from the canonical frame, each new frame starting
     from its nearest already-fitted neighbour's pose (0 = random windows only)."""
@@ -206,7 +213,13 @@ PRESETS: dict[str, tuple[str, dict]] = {
     ),
     "quality": (
         "Slower and finer: 256 px crops, more vertices and steps.",
-        {"data.crop_size": 256, "coarse.init.target_vertices": 2500, "motion.warmup_steps": 400, "motion.steps": 2000},
+        {
+            "data.crop_size": 256,
+            "coarse.init.target_vertices": 2500,
+            "motion.warmup_steps": 400,
+            "motion.steps": 2000,
+            "motion.hypotheses": 9,
+        },
     ),
     "smoke": (
         "A seconds-long smoke run for tests: 48 px crops, a few steps.",

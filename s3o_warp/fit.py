@@ -357,7 +357,14 @@ class Fitter:
             frames = torch.arange(start, start + n, device=self.device)
             self._seed_unvisited(frames)
             return frames
-        start = int(torch.randint(0, T - n + 1, (1,), generator=self.gen))
+        return self._random_window()
+
+    def _random_window(self) -> torch.Tensor:
+        """A window of consecutive frames around a uniformly drawn frame (clamped, so ends are covered too)."""
+        T = self.data.num_frames
+        n = min(self.cfg.motion.batch_frames, T)
+        centre = int(torch.randint(0, T, (1,), generator=self.gen))
+        start = min(max(centre - n // 2, 0), T - n)
         return torch.arange(start, start + n, device=self.device)
 
     @torch.no_grad()
@@ -450,6 +457,8 @@ class Fitter:
                 self._good = None
                 self.save_checkpoint()
             n = self.phase_steps(phase)
+            if phase == "warmup" and self.step == 0 and self.cfg.motion.hypotheses > 1:
+                self.select_hypothesis()
             bar = tqdm(total=n, initial=self.step, desc=f"{phase:>6}", dynamic_ncols=True, leave=True)
             while self.step < n:
                 self.opt.zero_grad(set_to_none=True)
@@ -501,6 +510,60 @@ class Fitter:
                    "what": "final", "iou_all_frames": self.hard_iou()})
         self.phase, self.step = "done", 0
         self.save_checkpoint()
+
+    def select_hypothesis(self) -> float:
+        """Score root-rotation hypotheses (constant turn rates about the object's vertical axis) by a short
+        warm-up each and keep the best (LASR/S3O's camera hypotheses); returns the chosen rate (deg/frame)."""
+        import copy
+
+        from s3o_warp.geometry import axis_angle_to_matrix
+
+        mc, m = self.cfg.motion, self.model
+        base = copy.deepcopy(m.state_dict())
+        T, c = m.num_frames, self.coarse.canonical
+        rates = np.linspace(-mc.hypothesis_max_rate, mc.hypothesis_max_rate, mc.hypotheses)
+        if 0.0 not in rates:
+            rates = np.append(rates, 0.0)
+        gen_state = self.gen.get_state()
+
+        def apply(rate: float) -> None:
+            m.load_state_dict(base)
+            ang = torch.deg2rad(torch.tensor(rate * (np.arange(T) - c), dtype=torch.float32, device=self.device))
+            aa = torch.zeros(T, 3, device=self.device)
+            aa[:, 1] = ang
+            with torch.no_grad():
+                m.root_R0.copy_(base["root_R0"] @ axis_angle_to_matrix(aa))
+
+        scores = []
+        for rate in rates:
+            apply(float(rate))
+            self.gen.set_state(gen_state)
+            self.opt = self._make_optimizer()
+            losses = []
+            for i in range(mc.hypothesis_steps):
+                frames = self._random_window()
+                self.opt.zero_grad(set_to_none=True)
+                terms, _, _ = self.motion_losses(frames)
+                total = sum(w * v for w, v in terms.values())
+                if not torch.isfinite(total):
+                    losses.append(float("inf"))
+                    break
+                total.backward()
+                self._step_window(frames)
+                self.step += 1
+                losses.append(float(total.detach()))
+            self.step = 0
+            tail = losses[-max(1, len(losses) // 3):]
+            scores.append(float(np.mean(tail)))
+        best = float(rates[int(np.argmin(scores))])
+        apply(best)
+        m.visited.zero_()
+        self.gen.set_state(gen_state)
+        self.opt = self._make_optimizer()
+        self._log({"phase": "eval", "step": 0, "seconds": round(time.perf_counter() - self.t0, 3), "what": "hypotheses",
+                   "rates_deg_per_frame": [float(r) for r in rates], "scores": scores, "chosen": best})
+        log.info("camera hypotheses: turn rate %.2f deg/frame chosen (scores %s)", best, ", ".join(f"{x:.4f}" for x in scores))
+        return best
 
     def _step_window(self, frames: torch.Tensor | None) -> None:
         """Optimiser step that moves per-frame parameters only for the frames of this batch.

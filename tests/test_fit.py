@@ -148,3 +148,23 @@ def test_nan_in_a_loss_is_skipped_rolled_back_and_then_stops_naming_the_term(tin
     monkeypatch.setattr(Fitter, "motion_losses", nan_always)
     with pytest.raises(FitDiverged, match="loss term 'flow'"):
         fit(tiny_sequence, tmp_path / "always", cfg, torch.device("cpu"))
+
+
+def test_camera_hypotheses_score_each_rate_and_keep_the_best(tiny_sequence, tmp_path):
+    from s3o_warp.geometry import axis_angle_to_matrix
+
+    cfg = _cfg(**{"coarse.steps": 2, "motion.warmup_steps": 2, "motion.steps": 2,
+                  "motion.hypotheses": 3, "motion.hypothesis_steps": 2})
+    run = tmp_path / "run"
+    fit(tiny_sequence, run, cfg, torch.device("cpu"))
+    rec = next(json.loads(l) for l in (run / "log.jsonl").read_text().splitlines() if '"hypotheses"' in l)
+    assert len(rec["scores"]) == 3 and rec["rates_deg_per_frame"] == [-2.0, 0.0, 2.0]
+    assert rec["chosen"] == rec["rates_deg_per_frame"][int(np.argmin(rec["scores"]))]
+    # the chosen turn is what the model's base root rotation holds
+    st = torch.load(latest_checkpoint(run), weights_only=False)["model"]
+    R0 = st["root_R0"]
+    T = R0.shape[0]
+    rel = R0[0].T @ R0[-1]
+    aa = torch.zeros(1, 3)
+    aa[0, 1] = np.deg2rad(rec["chosen"] * (T - 1))
+    torch.testing.assert_close(rel, axis_angle_to_matrix(aa)[0], atol=1e-5, rtol=0)
