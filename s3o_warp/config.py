@@ -35,6 +35,8 @@ class DataConfig:
     """Masks with several disconnected blobs: keep the largest (a warning names the frames); false keeps all."""
     border_weight: float = 0.3
     """Silhouette-loss weight of frames where the object touches the frame border (it leaves the frame)."""
+    resident_max_frames: int = 400
+    """Sequences up to this many frames keep crops and flow in (device) memory; longer ones are streamed from disk."""
     frame_cache_size: int = 4
     """Decoded frames (image and mask) a sequence keeps in memory; others are read from disk on demand."""
 

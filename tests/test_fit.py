@@ -168,3 +168,13 @@ def test_camera_hypotheses_score_each_rate_and_keep_the_best(tiny_sequence, tmp_
     aa = torch.zeros(1, 3)
     aa[0, 1] = np.deg2rad(rec["chosen"] * (T - 1))
     torch.testing.assert_close(rel, axis_angle_to_matrix(aa)[0], atol=1e-5, rtol=0)
+
+
+def test_streamed_frames_give_the_same_fit_as_resident_ones(tiny_sequence, tmp_path):
+    base = {"coarse.steps": 3, "motion.warmup_steps": 4, "motion.steps": 4}
+    fit(tiny_sequence, tmp_path / "res", _cfg(**base), torch.device("cpu"))
+    fit(tiny_sequence, tmp_path / "str", _cfg(**base, **{"data.resident_max_frames": 2}), torch.device("cpu"))
+    assert list((tmp_path / "str" / "cache").glob("crops_*.npy")), "long sequences stream crops from a memory map"
+    pa, pb = _final_params(tmp_path / "res"), _final_params(tmp_path / "str")
+    for k in pa:
+        torch.testing.assert_close(pb[k], pa[k], rtol=0, atol=0, msg=k)
