@@ -250,6 +250,16 @@ def load_ground_truth(gt) -> GroundTruth:
                 raise InputError(f"{path}: '{deform_key}' must have shape ({J},), got {keep.shape}")
             joints = joints[:, keep]
             names = [n for n, k in zip(names, keep) if k] if len(names) == J else names
+            if parents is not None and parents.shape == (J,):
+                # re-index the tree onto the kept joints: each joint hangs from its nearest kept ancestor
+                new_index = np.cumsum(keep) - 1
+                remapped = []
+                for j in np.flatnonzero(keep):
+                    p = int(parents[j])
+                    while p >= 0 and not keep[p]:
+                        p = int(parents[p])
+                    remapped.append(int(new_index[p]) if p >= 0 else -1)
+                parents = np.asarray(remapped, dtype=np.int64)
     fnames = None
     if "frame_names" in d:
         fnames = [str(s) for s in d["frame_names"].reshape(-1)]
@@ -745,6 +755,61 @@ def skeleton_distance(pred_joints: np.ndarray, gt_joints: np.ndarray, diag: np.n
             "per_frame": per_frame.tolist(), "gt_joints": int(J), "pred_joints": int(Jp)}
 
 
+def gt_limbs(parents: np.ndarray, names: list[str] | None = None) -> list[dict]:
+    """The limbs of a joint tree: from each leaf up to (and including) the nearest branching ancestor.
+
+    Concretely, a limb ``{"name": "foot_fl", "joints": [8, 9, 10]}`` is the chain shoulder -> knee ->
+    foot of a quadruped's front-left leg (the shoulder being where the chain meets the body).
+    """
+    parents = np.asarray(parents, dtype=np.int64)
+    J = len(parents)
+    children = np.bincount(parents[parents >= 0], minlength=J)
+    limbs = []
+    for leaf in np.flatnonzero(children == 0):
+        chain = [int(leaf)]
+        p = int(parents[leaf])
+        while p >= 0:
+            chain.append(p)
+            if children[p] > 1 or parents[p] < 0:
+                break
+            p = int(parents[p])
+        if len(chain) >= 2:
+            nm = names[leaf] if names is not None and len(names) == J else f"joint_{leaf}"
+            limbs.append({"name": nm, "joints": chain[::-1]})
+    return limbs
+
+
+def _point_polyline_distance(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """Distance of each of ``points (M, 3)`` to the polyline ``poly (K, 3)``."""
+    a, b = poly[:-1], poly[1:]
+    ab = b - a
+    t = np.einsum("mkd,kd->mk", points[:, None] - a[None], ab) / np.maximum((ab * ab).sum(-1), 1e-12)
+    q = a[None] + np.clip(t, 0, 1)[..., None] * ab[None]
+    return np.linalg.norm(points[:, None] - q, axis=-1).min(1)
+
+
+def limb_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, gt_parents: np.ndarray, diag: np.ndarray,
+                  sim: Similarity | None = None, names: list[str] | None = None, tol: float = 0.05,
+                  min_joints: int = 2) -> dict:
+    """Does every ground-truth limb have a learned joint chain along it?
+
+    A limb (see :func:`gt_limbs`) counts as covered when, in at least half of the frames, ``min_joints``
+    or more predicted joints lie within ``tol`` x the bbox diagonal of the limb's polyline (after the
+    sequence alignment ``sim``). Returns per-limb median counts and the covered fraction.
+    """
+    pj = sim(pred_joints) if sim is not None else np.asarray(pred_joints, dtype=np.float64)
+    gj = np.asarray(gt_joints, dtype=np.float64)
+    out = []
+    for limb in gt_limbs(gt_parents, names):
+        counts = np.array([(_point_polyline_distance(pj[t], gj[t, limb["joints"]]) < tol * diag[t]).sum()
+                           for t in range(gj.shape[0])])
+        covered = bool((counts >= min_joints).mean() >= 0.5)
+        out.append({"limb": limb["name"], "gt_joints": len(limb["joints"]), "median_pred_joints": float(np.median(counts)),
+                    "covered": covered})
+    n = len(out)
+    return {"limbs": out, "covered": sum(o["covered"] for o in out), "total": n, "tol": tol, "min_joints": min_joints}
+
+
 # --------------------------------------------------------------------------------------------------
 # Whole-run evaluation
 # --------------------------------------------------------------------------------------------------
@@ -900,7 +965,11 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
         elif pred.joints_cam is None:
             skipped["skeleton"] = f"{pred.source} has no joints_cam"
         else:
-            result["skeleton"] = skeleton_distance(pred.joints_cam[pi], gt.joints[gi], bbox_diagonal(gt.verts[gi]), sim)
+            diag = bbox_diagonal(gt.verts[gi])
+            result["skeleton"] = skeleton_distance(pred.joints_cam[pi], gt.joints[gi], diag, sim)
+            if gt.joint_parents is not None and len(gt.joint_parents) == gt.joints.shape[1]:
+                result["skeleton"]["limbs"] = limb_coverage(pred.joints_cam[pi], gt.joints[gi], gt.joint_parents, diag,
+                                                            sim, gt.joint_names)
     else:
         skipped["shape_3d"] = skipped["skeleton"] = "no ground_truth/ (synthetic sequences only)"
     result["skipped"] = skipped

@@ -521,3 +521,22 @@ def test_badja_keypoints_fall_inside_davis_masks(shared_data, animal, tmp_path):
     # measured: cows 96.9% inside, 99.7% within 3 px, all within 5 px; dog 99.5% inside, all within 3 px
     assert (dist == 0).mean() > 0.95
     assert (dist <= 5).mean() > 0.99
+
+
+def test_limb_coverage_on_a_hand_made_tree():
+    from s3o_warp.metrics import gt_limbs, limb_coverage
+
+    # body 0 -> 1; two legs from 1: 1 -> 2 -> 3 and 1 -> 4 -> 5; a tail 0 -> 6
+    parents = np.array([-1, 0, 1, 2, 1, 4, 0])
+    limbs = gt_limbs(parents, [f"j{i}" for i in range(7)])
+    assert sorted(tuple(l["joints"]) for l in limbs) == [(0, 6), (1, 2, 3), (1, 4, 5)]
+    pos = np.array([[0, 0, 5], [1, 0, 5], [1, 1, 5], [1, 2, 5], [2, 1, 5], [2, 2, 5], [-1, 0, 5]], float)[None]
+    gt = np.repeat(pos, 3, 0)
+    diag = np.full(3, 3.0)
+    full = limb_coverage(gt, gt, parents, diag)
+    assert full["covered"] == full["total"] == 3
+    # joints only along the first leg: the other leg and the tail are not covered
+    pred = np.repeat(np.array([[[1, 1.2, 5], [1, 1.8, 5]]]), 3, 0)
+    part = limb_coverage(pred, gt, parents, diag)
+    got = {l["limb"]: l["covered"] for l in part["limbs"]}
+    assert got == {"joint_3": True, "joint_5": False, "joint_6": False} and part["covered"] == 1
