@@ -119,8 +119,10 @@ def test_palette_masks_and_object_id(tmp_path):
         im = Image.fromarray(lab, mode="P")
         im.putpalette([0, 0, 0, 128, 0, 0, 0, 128, 0] + [0] * (256 * 3 - 9))
         im.save(root / "masks" / f"{k:05d}.png")
-    any_obj = open_sequence(root)
+    any_obj = open_sequence(root, cfg=DataConfig(largest_blob=False))
     np.testing.assert_array_equal(any_obj.bboxes[0], [10, 10, 69, 49])
+    largest = open_sequence(root)  # two objects, no id: two blobs, the largest is used (with a warning)
+    np.testing.assert_array_equal(largest.bboxes[0], [40, 30, 69, 49])
     obj1 = open_sequence(root, cfg=DataConfig(object_id=1))
     np.testing.assert_array_equal(obj1.bboxes[1], [11, 10, 30, 19])
     assert obj1.mask(1).sum() == 10 * 20
