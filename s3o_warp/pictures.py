@@ -149,7 +149,84 @@ def write_renders(run: Path, rig, data, history, data_cfg=None) -> list[Path]:
     seq = video.open_sequence(data.sequence_dir, cfg=data_cfg or DataConfig())
     paths = [overlay_video(Path(run), rig, seq, data.fps), loss_plot(Path(run), history)]
     paths.append(skeleton_overlay(Path(run), rig, seq))
+    paths += canonical_views(Path(run), rig, fps=data.fps)
     paths = [p for p in paths if p is not None]
     for p in paths:
         log.info("render: %s", p)
+    return paths
+
+
+def _look_from(direction: np.ndarray, centre: np.ndarray, dist: float, up: np.ndarray) -> np.ndarray:
+    """4x4 object -> OpenCV camera transform for a camera at ``centre - dist * direction`` looking along it."""
+    z = direction / np.linalg.norm(direction)
+    x = np.cross(-up, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    M = np.eye(4)
+    M[:3, :3] = R
+    M[:3, 3] = -R @ (centre - dist * z)
+    return M
+
+
+def render_canonical(rig, view: np.ndarray, size: int = 256, draw_skeleton: bool = True) -> np.ndarray:
+    """The canonical (rest) mesh with vertex colours, Lambert-shaded, from an object->camera ``view`` (RGB)."""
+    from s3o_warp.kernels.raster import interpolate, rasterize
+
+    v = rig.verts.astype(np.float64)
+    cam = v @ view[:3, :3].T + view[:3, 3]
+    ext = np.abs(cam[:, :2] / cam[:, 2:3]).max()
+    f = 0.45 * size / max(ext, 1e-6)
+    K = np.array([[f, 0, (size - 1) / 2], [0, f, (size - 1) / 2], [0, 0, 1]])
+    import trimesh
+
+    normals = trimesh.Trimesh(v, rig.faces, process=False).vertex_normals @ view[:3, :3].T
+    shade = np.clip(-normals[:, 2], 0, 1) * 0.7 + 0.3
+    col = np.clip(rig.colors * shade[:, None], 0, 1)
+    vt = torch.as_tensor(cam[None], dtype=torch.float32)
+    ft = torch.as_tensor(rig.faces, dtype=torch.int64)
+    with torch.no_grad():
+        fi, bary, _ = rasterize(vt, ft, torch.as_tensor(K, dtype=torch.float32), (size, size))
+        img = interpolate(torch.as_tensor(col, dtype=torch.float32), ft, fi, bary)[0].numpy()
+    bg = np.full((size, size, 3), 0.93)
+    fg = (fi[0] >= 0).numpy()
+    out = np.where(fg[..., None], img, bg)
+    out = (out * 255).astype(np.uint8)
+    if draw_skeleton and rig.centres is not None:
+        def px(p):
+            q = K @ (view[:3, :3] @ p + view[:3, 3])
+            return int(round(q[0] / q[2])), int(round(q[1] / q[2]))
+
+        if rig.joints is not None and rig.joint_pairs is not None:
+            for j, (a, b) in enumerate(rig.joint_pairs):
+                for bone in (a, b):
+                    cv2.line(out, px(rig.joints[j]), px(rig.centres[bone]), (30, 30, 200), 2, cv2.LINE_AA)
+            for p in rig.joints:
+                cv2.circle(out, px(p), 4, (220, 20, 20), -1, cv2.LINE_AA)
+        for p in rig.centres:
+            cv2.circle(out, px(p), 3, (20, 140, 255), -1, cv2.LINE_AA)
+    return out
+
+
+def canonical_views(run: Path, rig, fps: float = 24.0, turntable_frames: int = 36) -> list[Path]:
+    """Side and top views of the canonical mesh with its skeleton (PNG) and a turntable (mp4/GIF)."""
+    v = rig.verts.astype(np.float64)
+    centre = 0.5 * (v.min(0) + v.max(0))
+    dist = 3.0 * np.linalg.norm(v.max(0) - v.min(0))
+    # object frame: the canonical camera's axes (y down, z away from the canonical camera)
+    down = np.array([0.0, 1.0, 0.0])
+    paths = []
+    for name, direction, up in (("side", np.array([0.0, 0.0, 1.0]), -down), ("top", down, np.array([0.0, 0.0, 1.0]))):
+        img = render_canonical(rig, _look_from(direction, centre, dist, up))
+        path = run / "renders" / f"canonical_{name}.png"
+        tmp = path.with_name(path.stem + ".tmp.png")
+        cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+        os.replace(tmp, path)
+        paths.append(path)
+    frames = []
+    for k in range(turntable_frames):
+        a = 2 * np.pi * k / turntable_frames
+        direction = np.array([np.sin(a), 0.35, np.cos(a)])
+        frames.append(render_canonical(rig, _look_from(direction, centre, dist, -down)))
+    paths.append(_write_video(frames, run / "renders" / "turntable.mp4", fps))
     return paths
