@@ -65,6 +65,33 @@ def test_small_fit_raises_iou_and_writes_the_run_directory(tiny_sequence, tmp_pa
         assert (run / name).is_file(), name
     assert metrics["mask_iou"]["mean"] > 0.6
     assert metrics["pck_t"]["pck"] is not None
+    _check_exported_fit(run, "quad")
+
+
+def _check_exported_fit(run, name):
+    """The export of a real fit: UsdSkel's skinning (top-K weights) and Gf.Camera reproduce the rig."""
+    from pxr import Usd
+
+    from s3o_warp.export.rig import dense_weights, load_rig, top_k_weights
+    from s3o_warp.export.usd import export_usd
+    from test_export import gf_camera_project, usd_skinned_world, validation_errors
+
+    rig = load_rig(run)
+    B = rig.num_bones
+    report = export_usd(rig, run / f"{name}_all.usda", influences=B)  # all influences: exact
+    stage = Usd.Stage.Open(str(report.path))
+    tol = 1e-4 * rig.bbox_diagonal()
+    proj = rig.project()
+    for t in (0, rig.num_frames - 1):
+        world = usd_skinned_world(stage, t)
+        np.testing.assert_allclose(world, rig.posed_world(t), atol=tol, rtol=0)
+        assert np.abs(gf_camera_project(stage, t, world, rig.image_size) - proj[t]).max() < 0.5
+    assert validation_errors(stage) == []
+    # the default file (4 influences) is exact for the pruned weights
+    stage4 = Usd.Stage.Open(str(run / f"{name}.usdc"))
+    idx, val = top_k_weights(rig.weights, 4)
+    dense = dense_weights(idx, val, B)
+    np.testing.assert_allclose(usd_skinned_world(stage4, 1), rig.posed_world(1, weights=dense), atol=tol, rtol=0)
 
 
 def _final_params(run):
