@@ -237,7 +237,7 @@ class _SoftSilhouetteNaiveFn(torch.autograd.Function):
         return grad64.to(xy.dtype), None, None, None, None, None
 
 
-def soft_silhouette(verts, faces, K, image_size, sigma: float = 1.0, tile_size: int = 16, near: float = 1e-3):
+def soft_silhouette(verts, faces, K, image_size, sigma: float = 1.0, tile_size: int = 8, near: float = 1e-3):
     """SoftRas soft silhouette of a mesh in T frames, binned into screen tiles.
 
     A = 1 - prod_j (1 - D_j), D_j = sigmoid(delta_j d_j^2 / sigma), where d_j is the distance in
@@ -294,7 +294,7 @@ def _cross(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
 
 
-def rasterize(verts, faces, K, image_size, tile_size: int = 16, near: float = 1e-3):
+def rasterize(verts, faces, K, image_size, tile_size: int = 8, near: float = 1e-3):
     """Z-buffer rasterisation: visible face, perspective-correct barycentrics and depth per pixel.
 
     Design: a binned Warp kernel finds the visible face of every pixel (no gradient); bary and
