@@ -169,7 +169,18 @@ def _look_from(direction: np.ndarray, centre: np.ndarray, dist: float, up: np.nd
     return M
 
 
-def render_canonical(rig, view: np.ndarray, size: int = 256, draw_skeleton: bool = True) -> np.ndarray:
+def bone_colors(weights: np.ndarray) -> np.ndarray:
+    """Each vertex coloured by its dominant bone (argmax of the skinning weights), like the paper's Fig. 3."""
+    import matplotlib
+
+    cmap = matplotlib.colormaps["tab20"]
+    B = weights.shape[1]
+    pal = np.array([cmap(i % 20)[:3] for i in range(B)])
+    return pal[np.argmax(weights, 1)].astype(np.float32)
+
+
+def render_canonical(rig, view: np.ndarray, size: int = 256, draw_skeleton: bool = True,
+                     colors: np.ndarray | None = None) -> np.ndarray:
     """The canonical (rest) mesh with vertex colours, Lambert-shaded, from an object->camera ``view`` (RGB)."""
     from s3o_warp.kernels.raster import interpolate, rasterize
 
@@ -182,7 +193,7 @@ def render_canonical(rig, view: np.ndarray, size: int = 256, draw_skeleton: bool
 
     normals = trimesh.Trimesh(v, rig.faces, process=False).vertex_normals @ view[:3, :3].T
     shade = np.clip(-normals[:, 2], 0, 1) * 0.7 + 0.3
-    col = np.clip(rig.colors * shade[:, None], 0, 1)
+    col = np.clip((rig.colors if colors is None else colors) * shade[:, None], 0, 1)
     vt = torch.as_tensor(cam[None], dtype=torch.float32)
     ft = torch.as_tensor(rig.faces, dtype=torch.int64)
     with torch.no_grad():
@@ -229,4 +240,10 @@ def canonical_views(run: Path, rig, fps: float = 24.0, turntable_frames: int = 3
         direction = np.array([np.sin(a), 0.35, np.cos(a)])
         frames.append(render_canonical(rig, _look_from(direction, centre, dist, -down)))
     paths.append(_write_video(frames, run / "renders" / "turntable.mp4", fps))
+    img = render_canonical(rig, _look_from(np.array([0.0, 0.0, 1.0]), centre, dist, -down), colors=bone_colors(rig.weights))
+    path = run / "renders" / "bones.png"
+    tmp = path.with_name("bones.tmp.png")
+    cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+    os.replace(tmp, path)
+    paths.append(path)
     return paths
