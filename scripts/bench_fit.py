@@ -91,6 +91,9 @@ def main(argv=None) -> int:
     ap.add_argument("--preset", default="default")
     ap.add_argument("--set", dest="overrides", action="append", default=[])
     ap.add_argument("--out-dir", default=str(REPO / "runs" / "bench"))
+    ap.add_argument("--t-o", nargs="+", type=float, default=None,
+                    help="skeleton granularity study: fit once per merge threshold t_o (e.g. 0.99 0.95 0.90) and put the "
+                         "three dominant-bone pictures side by side in renders/skeleton_t_o.png of the last run")
     args = ap.parse_args(argv)
 
     import torch
@@ -114,15 +117,20 @@ def main(argv=None) -> int:
         seq = prepare_case(case, work)
         if seq is None:
             continue
-        for method in args.methods:
+        variants = [(m, None) for m in args.methods] if not args.t_o else [("s3o", t) for t in args.t_o]
+        pictures = []
+        for method, t_o in variants:
             for seed in args.seeds:
-                cfg = make_config(args.preset, overrides=[f"skeleton.method={method}"] + args.overrides, seed=seed)
-                run = work / "runs" / f"{case}-{method}-{seed}"
+                extra = [f"skeleton.t_o={t_o}"] if t_o is not None else []
+                cfg = make_config(args.preset, overrides=[f"skeleton.method={method}"] + extra + args.overrides, seed=seed)
+                run = work / "runs" / (f"{case}-{method}-{seed}" + (f"-t_o{t_o}" if t_o is not None else ""))
                 t0 = time.perf_counter()
                 metrics = fit(seq, run, cfg, device)
                 wall = time.perf_counter() - t0
+                if t_o is not None:
+                    pictures.append((t_o, run / "renders" / "bones.png"))
                 entry = {
-                    "case": case, "method": method, "seed": seed, "preset": args.preset, "overrides": args.overrides,
+                    "case": case, "method": method, "seed": seed, "preset": args.preset, "overrides": args.overrides + extra,
                     "wall_seconds": round(wall, 1), "phase_seconds": phase_times(run),
                     "iou": (metrics.get("mask_iou") or {}).get("mean"),
                     "pck_t": (metrics.get("pck_t") or {}).get("pck"),
@@ -131,15 +139,37 @@ def main(argv=None) -> int:
                     "skeleton": {k: v for k, v in (metrics.get("skeleton") or {}).items() if k != "per_frame"},
                     "bones": len(json.loads((run / "skeleton.json").read_text())["bones"]),
                 }
-                doc["results"] = [r for r in doc["results"] if not (r["case"] == case and r["method"] == method and r["seed"] == seed and r.get("preset") == args.preset)]
+                doc["results"] = [r for r in doc["results"] if not (r["case"] == case and r["method"] == method and r["seed"] == seed
+                                                                    and r.get("preset") == args.preset and r.get("overrides") == entry["overrides"])]
                 doc["results"].append(entry)
                 print(json.dumps(entry), flush=True)
                 dest.parent.mkdir(exist_ok=True)
                 tmp = dest.with_suffix(".json.tmp")
                 tmp.write_text(json.dumps(doc, indent=2, default=float))
                 os.replace(tmp, dest)
+        if pictures:
+            _compose(pictures, run / "renders" / "skeleton_t_o.png")
     print(f"wrote {dest}")
     return 0
+
+
+def _compose(pictures, dest: Path) -> None:
+    """Side by side dominant-bone pictures labelled with their t_o."""
+    import cv2
+    import numpy as np
+
+    imgs = []
+    for t_o, p in pictures:
+        im = cv2.imread(str(p))
+        if im is None:
+            continue
+        cv2.putText(im, f"t_o = {t_o:.2f}", (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
+        imgs.append(im)
+    if imgs:
+        tmp = dest.with_name(dest.stem + ".tmp.png")
+        cv2.imwrite(str(tmp), np.concatenate(imgs, 1))
+        os.replace(tmp, dest)
+        print(f"wrote {dest}")
 
 
 def _versions():
