@@ -130,6 +130,7 @@ def main(argv=None) -> int:
                 if t_o is not None:
                     pictures.append((t_o, run / "renders" / "bones.png"))
                 entry = {
+                    "command": " ".join(["python"] + sys.argv),
                     "case": case, "method": method, "seed": seed, "preset": args.preset, "overrides": args.overrides + extra,
                     "wall_seconds": round(wall, 1), "phase_seconds": phase_times(run),
                     "iou": (metrics.get("mask_iou") or {}).get("mean"),
