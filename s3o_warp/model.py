@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from s3o_warp.geometry import axis_angle_to_matrix, quat_to_matrix
+from s3o_warp.geometry import axis_angle_to_matrix, matrix_to_quat, quat_to_matrix
 
 
 @dataclass
@@ -38,12 +38,6 @@ class ModelInit:
     crop_to_frame: torch.Tensor  # (T, 3, 3) crop pixel -> full-frame pixel
 
 
-def quat_from_matrix_wxyz(R: torch.Tensor) -> torch.Tensor:
-    from s3o_warp.geometry import matrix_to_quat
-
-    return matrix_to_quat(R)
-
-
 class S3OModel(nn.Module):
     """Learnable canonical shape, skeleton Gaussians, per-frame root/bone motion and intrinsics."""
 
@@ -57,7 +51,7 @@ class S3OModel(nn.Module):
         self.color_logits = nn.Parameter(torch.log(c / (1 - c)))
         self.register_buffer("faces", torch.as_tensor(init.faces, dtype=torch.int64).clone())
         self.bone_centers = nn.Parameter(torch.as_tensor(init.centers, **f32).clone())
-        self.bone_quat = nn.Parameter(quat_from_matrix_wxyz(torch.as_tensor(init.rotations, **f32)).clone())
+        self.bone_quat = nn.Parameter(matrix_to_quat(torch.as_tensor(init.rotations, **f32)).clone())
         self.bone_log_scales = nn.Parameter(torch.as_tensor(init.log_scales, **f32).clone())
         self.register_buffer("root_R0", torch.as_tensor(init.root_R, **f32).clone())
         self.root_aa = nn.Parameter(torch.zeros(T, 3, **f32))

@@ -135,6 +135,13 @@ def test_resume_refuses_a_checkpoint_of_another_sequence(tiny_sequence, tmp_path
     other = make_sequence(tmp_path / "other", frames=6, size=(96, 72), seed=1, progress=False)
     with pytest.raises(InputError, match="belongs to sequence"):
         fit(other, run, cfg, torch.device("cpu"), resume=True)
+    # a checkpoint written by another version of the format is refused with the reason
+    ck = latest_checkpoint(run)
+    st = torch.load(ck, weights_only=False)
+    st["version"] = 999
+    torch.save(st, ck)
+    with pytest.raises(InputError, match="version 999"):
+        fit(tiny_sequence, run, cfg, torch.device("cpu"), resume=True)
 
 
 def test_cuda_device_without_cuda_is_one_clear_error():
