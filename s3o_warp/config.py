@@ -77,7 +77,7 @@ class MotionConfig:
     """Frames per optimisation step."""
     warmup_steps: int = 200
     """Steps with the mesh frozen (camera and motion only)."""
-    hypotheses: int = 1
+    hypotheses: int = 5
     """Root-rotation hypotheses tried at the start of the warm-up (1 = off): each assumes the camera turns
     about the object's vertical axis at a constant rate; a short fit scores each and the best is kept."""
     hypothesis_max_rate: float = 2.0
@@ -211,7 +211,7 @@ PRESETS: dict[str, tuple[str, dict]] = {
     "default": ("The defaults: a good fit on the CPU in minutes at 128 px crops.", {"data.crop_size": 128}),
     "fast": (
         "A quick look: 96 px crops, fewer steps.",
-        {"data.crop_size": 96, "coarse.steps": 80, "motion.warmup_steps": 100, "motion.steps": 300},
+        {"data.crop_size": 96, "coarse.steps": 80, "motion.warmup_steps": 100, "motion.steps": 300, "motion.hypotheses": 3},
     ),
     "quality": (
         "Slower and finer: 256 px crops, more vertices and steps.",
@@ -232,6 +232,7 @@ PRESETS: dict[str, tuple[str, dict]] = {
             "motion.warmup_steps": 5,
             "motion.steps": 10,
             "motion.batch_frames": 4,
+            "motion.hypotheses": 1,
         },
     ),
 }
