@@ -18,12 +18,11 @@ import argparse
 import json
 import os
 import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+from s3o_warp.provenance import REPO, git_commit, versions
 DATA = Path(os.environ.get("S3O_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 SYNTH = {
@@ -110,8 +109,8 @@ def main(argv=None) -> int:
         device=str(device),
         device_name=torch.cuda.get_device_name(device) if device.type == "cuda" else (platform.processor() or platform.machine()),
         cpu_count=os.cpu_count(),
-        versions=_versions(),
-        git_commit=_git(),
+        versions=versions(),
+        git_commit=git_commit(),
     )
     for case in args.cases:
         seq = prepare_case(case, work)
@@ -171,21 +170,6 @@ def _compose(pictures, dest: Path) -> None:
         cv2.imwrite(str(tmp), np.concatenate(imgs, 1))
         os.replace(tmp, dest)
         print(f"wrote {dest}")
-
-
-def _versions():
-    import numpy
-    import torch
-    import warp
-
-    return {"python": platform.python_version(), "torch": torch.__version__, "warp": warp.config.version, "numpy": numpy.__version__}
-
-
-def _git():
-    try:
-        return subprocess.check_output(["git", "rev-parse", "HEAD"], cwd=REPO, text=True).strip()
-    except Exception:
-        return None
 
 
 if __name__ == "__main__":

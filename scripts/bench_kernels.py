@@ -15,14 +15,13 @@ import json
 import os
 import platform
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
+from s3o_warp.provenance import REPO, git_commit, versions
 
 
 def timeit(fn, device: str, repeats: int, warmup: int = 1) -> dict:
@@ -170,8 +169,8 @@ def main(argv=None) -> int:
         "device_name": torch.cuda.get_device_name(dev) if dev.startswith("cuda") else platform.processor() or platform.machine(),
         "cpu_count": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),
-        "versions": _versions(),
-        "git_commit": _git(),
+        "versions": versions(),
+        "git_commit": git_commit(),
         "cases": cases,
     }
     summary = _summary(cases)
@@ -203,20 +202,6 @@ def _summary(cases):
     if w and t:
         s["blend_skinning_warp_over_torch_fwd_bwd_N5000_B25_T8"] = round(w / t, 2)
     return s
-
-
-def _versions():
-    import numpy
-    import warp
-
-    return {"python": platform.python_version(), "torch": torch.__version__, "warp": warp.config.version, "numpy": numpy.__version__}
-
-
-def _git():
-    try:
-        return subprocess.check_output(["git", "rev-parse", "HEAD"], cwd=REPO, text=True).strip()
-    except Exception:
-        return None
 
 
 if __name__ == "__main__":

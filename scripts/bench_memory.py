@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -66,15 +65,14 @@ def main(argv=None) -> int:
         rec.update(frames=n, size=[W, H], steps_per_phase=args.steps)
         results.append(rec)
         print(json.dumps(rec), flush=True)
-    import torch
-    import warp
+    from s3o_warp.provenance import device_name, git_commit, versions
 
     doc = {
         "command": " ".join(["python"] + sys.argv),
         "device": args.device,
-        "device_name": platform.processor() or platform.machine(),
-        "versions": {"python": platform.python_version(), "torch": torch.__version__, "warp": warp.config.version},
-        "git_commit": subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip(),
+        "device_name": device_name(args.device),
+        "versions": versions(),
+        "git_commit": git_commit(),
         "note": "peak_rss_mb is the child process's ru_maxrss (includes Python, torch and Warp: about 400-500 MB at rest)",
         "results": results,
     }

@@ -11,7 +11,6 @@ import signal
 import subprocess
 import sys
 import textwrap
-import time
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +23,7 @@ from s3o_warp.export import usd as usd_mod
 from s3o_warp.export.rig import dense_weights, top_k_weights
 
 pxr = pytest.importorskip("pxr")
-from pxr import Gf, Usd, UsdGeom, UsdSkel, UsdValidation  # noqa: E402
+from pxr import Usd, UsdGeom, UsdSkel, UsdValidation  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -353,7 +353,7 @@ def test_scores_a_synth_sequence(tmp_path):
 
 def test_pck_of_a_run_matches_naive_loops(scene):
     """evaluate_run's PCK-T (chunked renders, KD-tree lookups) equals the loop twin on full renders."""
-    kp, fi, bary, verts, faces = scene["kp"], scene["fi"], scene["bary"], scene["verts"], scene["faces"]
+    kp, fi, verts, faces = scene["kp"], scene["fi"], scene["verts"], scene["faces"]
     T = len(verts)
     area = (fi >= 0).reshape(T, -1).sum(1)
     K = np.broadcast_to(scene["K"], (T, 3, 3)).astype(np.float64)

@@ -501,7 +501,6 @@ def gltf_keypoints(mesh: AnimatedMesh, max_points: int = 20) -> tuple[list[str],
     """
     names = mesh.joint_names
     deform = np.where(mesh.deforming)[0]
-    dset = set(deform.tolist())
     has_child: set[int] = set()  # joints with a deforming descendant
     for j in deform:
         p = int(mesh.parents[j])

@@ -1,0 +1,36 @@
+"""Where a benchmark number came from: versions, git commit and device name (for benchmarks/*.json)."""
+
+from __future__ import annotations
+
+import os
+import platform
+import subprocess
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def versions() -> dict:
+    """Python, torch, Warp and numpy versions."""
+    import numpy
+    import torch
+    import warp
+
+    return {"python": platform.python_version(), "torch": torch.__version__, "warp": warp.config.version, "numpy": numpy.__version__}
+
+
+def git_commit() -> str | None:
+    """The checkout's HEAD commit, or None outside a git checkout."""
+    try:
+        return subprocess.check_output(["git", "rev-parse", "HEAD"], cwd=REPO, text=True, stderr=subprocess.DEVNULL).strip()
+    except Exception:
+        return None
+
+
+def device_name(device: str) -> str:
+    """The GPU's name for ``cuda[:N]``, else the CPU's (with the core count)."""
+    if str(device).startswith("cuda"):
+        import torch
+
+        return torch.cuda.get_device_name(device)
+    return f"{platform.processor() or platform.machine()} ({os.cpu_count()} cores)"
