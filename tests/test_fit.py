@@ -212,3 +212,46 @@ def test_streamed_frames_give_the_same_fit_as_resident_ones(tiny_sequence, tmp_p
     pa, pb = _final_params(tmp_path / "res"), _final_params(tmp_path / "str")
     for k in pa:
         torch.testing.assert_close(pb[k], pa[k], rtol=0, atol=0, msg=k)
+
+
+@pytest.mark.parametrize("epoch", [0, 2])  # 0: shift + growth, 2 (= e1): upsampling
+def test_m_step_keeps_the_posed_mesh_and_the_loss(tiny_sequence, tmp_path, epoch):
+    from s3o_warp.mstep import m_step
+
+    cfg = _cfg(**{"coarse.steps": 5, "motion.warmup_steps": 5})
+    data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
+    f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
+    f.phase = "joint"
+    f.opt = f._make_optimizer()
+    frames = torch.arange(0, 4)
+    for _ in range(3):  # give the bones some motion first
+        f.opt.zero_grad()
+        terms, _, _ = f.motion_losses(frames)
+        sum(w * v for w, v in terms.values()).backward()
+        f._step_window(frames)
+    with torch.no_grad():
+        before = f.model(frames).clone()
+        loss0 = float(sum(w * v for w, v in f.motion_losses(frames)[0].values()))
+    B0 = f.model.num_bones
+    if epoch == 0:  # make the growth test fire: pretend every part was half as long at the start
+        from s3o_warp import skeleton as sk
+
+        X, W = f.model.verts.detach().double().numpy(), f.model.skinning().detach().double().numpy()
+        f.skel.extents = 0.4 * sk.part_extents(X, W)
+    changed = m_step(f.model, f.opt, data, cfg, f.skel, epoch)
+    assert changed and f.model.num_bones >= B0
+    if epoch == cfg.skeleton.e1:
+        assert f.model.num_bones > B0
+    with torch.no_grad():
+        after = f.model(frames)
+        loss1 = float(sum(w * v for w, v in f.motion_losses(frames)[0].values()))
+    diag = float((before.amax((0, 1)) - before.amin((0, 1))).norm())
+    # measured: 0.1-0.25 % of the diagonal and 0.1-0.4 % of the loss
+    assert float((after - before).norm(dim=-1).mean()) < 0.01 * diag
+    assert abs(loss1 - loss0) < 0.05 * loss0, (loss0, loss1)
+    # the optimiser follows the new parameters and can step
+    f.opt.zero_grad()
+    terms, _, _ = f.motion_losses(frames)
+    sum(w * v for w, v in terms.values()).backward()
+    f._step_window(frames)
+    assert len(f.skel.parents) == f.model.num_bones
