@@ -32,7 +32,10 @@ class DataConfig:
     crop_background: tuple[int, int, int] = (0, 0, 0)
     """RGB colour given to crop pixels that fall outside the frame (masks get 0 there)."""
     largest_blob: bool = True
-    """Masks with several disconnected blobs: keep the largest (a warning names the frames); false keeps all."""
+    """Masks with several disconnected blobs: keep the largest and the fragments near it (a warning names the
+    frames); false keeps all."""
+    blob_gap: float = 0.05
+    """Fragments within this fraction of the largest blob's bbox diagonal belong to the object (thin legs break off)."""
     border_weight: float = 0.3
     """Silhouette-loss weight of frames where the object touches the frame border (it leaves the frame)."""
     resident_max_frames: int = 400

@@ -497,6 +497,10 @@ class Fitter:
         return float(torch.cat(ious).mean())
 
     def _log(self, rec: dict) -> None:
+        if rec.get("phase") == "eval":
+            import resource
+
+            rec["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
         self.history.append(rec)
         with open(self.log_file, "a") as fh:
             fh.write(json.dumps(rec) + "\n")

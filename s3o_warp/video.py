@@ -310,11 +310,23 @@ def crop_frame(
 
 
 def _clean_mask(mask: np.ndarray, cfg) -> np.ndarray:
-    """The mask as the fit uses it: its largest blob when ``data.largest_blob`` (else unchanged)."""
+    """The mask as the fit uses it: with ``data.largest_blob``, the largest blob and the fragments near it.
+
+    Thin parts (a leg, a tail tip) often break off a few pixels from the body in a mask; they belong to
+    the object and are kept when they lie within ``data.blob_gap`` x the largest blob's bbox diagonal of
+    it. Blobs farther away (another object, noise) are dropped.
+    """
     if not getattr(cfg, "largest_blob", False) or not mask.any():
         return mask
-    n, _labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
-    return mask if n <= 2 else largest_component(mask)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    if n <= 2:
+        return mask
+    best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    w, h = stats[best, cv2.CC_STAT_WIDTH], stats[best, cv2.CC_STAT_HEIGHT]
+    r = max(1, int(round(getattr(cfg, "blob_gap", 0.05) * float(np.hypot(w, h)))))
+    near = cv2.dilate((labels == best).astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+    keep = np.unique(labels[(near > 0) & (labels > 0)])
+    return np.isin(labels, keep)
 
 
 def largest_component(mask: np.ndarray) -> np.ndarray:
@@ -794,8 +806,8 @@ def open_sequence(
 
     if multi_blob:
         log.warning(
-            "%s: %d mask(s) have several disconnected blobs (first: %s); the largest blob is used "
-            "(set data.largest_blob=false to keep them all)", seq_name, len(multi_blob), mask_files[multi_blob[0]]
+            "%s: %d mask(s) have disconnected blobs away from the object (first: %s); the largest blob and the "
+            "fragments near it are used (data.blob_gap; data.largest_blob=false keeps all)", seq_name, len(multi_blob), mask_files[multi_blob[0]]
         )
     if touches.any():
         log.warning(

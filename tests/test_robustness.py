@@ -37,11 +37,18 @@ def test_several_blobs_use_the_largest_with_a_warning(tmp_path, caplog):
     seq_dir = _write_seq(tmp_path / "seq", [two, _blob(), _blob()])
     with caplog.at_level(logging.WARNING):
         seq = open_sequence(seq_dir, cfg=DataConfig())
-    assert any("several disconnected blobs" in r.getMessage() and "00000.png" in r.getMessage() for r in caplog.records)
+    assert any("disconnected blobs" in r.getMessage() and "00000.png" in r.getMessage() for r in caplog.records)
     assert seq.mask(0).sum() == _blob().sum()
     assert tuple(seq.bboxes[0]) == tuple(seq.bboxes[1])
     keep_all = open_sequence(seq_dir, cfg=DataConfig(largest_blob=False))
     assert keep_all.mask(0).sum() == two.sum()
+
+
+def test_fragments_next_to_the_object_are_kept(tmp_path):
+    body = _blob(box=(10, 10, 30, 40))
+    leg = _blob(box=(31, 20, 38, 22))  # broke off one pixel below the body
+    seq = open_sequence(_write_seq(tmp_path / "seq", [body | leg, body, body]), cfg=DataConfig())
+    assert seq.mask(0).sum() == body.sum() + leg.sum()
 
 
 def test_object_leaving_the_frame_is_down_weighted_with_a_warning(tmp_path, caplog):
