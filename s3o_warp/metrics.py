@@ -476,8 +476,9 @@ def surface_under_keypoints(face_index: np.ndarray, bary: np.ndarray, xy: np.nda
 
 def pck_transfer(keypoints: np.ndarray, verts: np.ndarray, faces: np.ndarray, K: np.ndarray,
                  kp_face: np.ndarray, kp_bary: np.ndarray, mask_area: np.ndarray, alpha: float = 0.2,
-                 threshold_frame: Literal["reference", "target"] = "reference") -> dict:
-    """PCK-T over every ordered pair of annotated frames (vectorised).
+                 threshold_frame: Literal["reference", "target"] = "reference", chunk_elements: int = 2_000_000,
+                 pair_limit: int = 5_000_000) -> dict:
+    """PCK-T over every ordered pair of annotated frames (vectorised in chunks of reference frames).
 
     Args:
         keypoints: float (A, P, 3) ``[x, y, visible]`` per annotated frame, full-frame pixels.
@@ -496,7 +497,8 @@ def pck_transfer(keypoints: np.ndarray, verts: np.ndarray, faces: np.ndarray, K:
         dict: ``pck`` (percent, NaN when nothing was scored), ``correct``, ``total`` (pairs x
         keypoints scored), ``pairs`` (ordered frame pairs), ``per_keypoint_correct`` and
         ``per_keypoint_total`` (P,) int arrays, ``pred`` float64 (A, A, P, 2) transferred positions
-        ``pred[i, j]`` of frame i's keypoints in frame j, and ``valid`` bool (A, A, P).
+        ``pred[i, j]`` of frame i's keypoints in frame j, and ``valid`` bool (A, A, P) (both None when
+        A * A * P > ``pair_limit``: long fully annotated videos are scored in O(A P) memory).
     """
     if threshold_frame not in ("reference", "target"):
         raise ValueError(f"pck_transfer(): threshold_frame must be 'reference' or 'target', got {threshold_frame!r}")
@@ -506,31 +508,47 @@ def pck_transfer(keypoints: np.ndarray, verts: np.ndarray, faces: np.ndarray, K:
     Kd = np.asarray(K, dtype=np.float64)
     face = np.asarray(kp_face, dtype=np.int64)
     has = face >= 0
-    tri = np.asarray(faces, dtype=np.int64)[np.where(has, face, 0)]  # (A_i, P, 3)
-    corners = V[:, tri]  # (A_j, A_i, P, 3, 3)
-    w = np.where(has[..., None], np.asarray(kp_bary, dtype=np.float64), 1.0 / 3.0)  # any point for the unused
-    X = np.einsum("ipk,jipkc->ijpc", w, corners)  # (A_i, A_j, P, 3)
-    proj = project(X, Kd[None, :, None])  # proj[i, j, p]: frame i's surface point seen in frame j
-    proj_self = np.stack([proj[i, i] for i in range(A)])  # (A_i, P, 2)
-    flow = np.where(has[:, None, :, None], proj - proj_self[:, None], 0.0)
-    pred = kp[:, None, :, :2] + flow
+    tri_all = np.asarray(faces, dtype=np.int64)[np.where(has, face, 0)]  # (A_i, P, 3)
+    w_all = np.where(has[..., None], np.asarray(kp_bary, dtype=np.float64), 1.0 / 3.0)  # any point for the unused
     vis = kp[..., 2] > 0.5
-    valid = vis[:, None, :] & vis[None, :, :] & ~np.eye(A, dtype=bool)[:, :, None]
-    err = np.linalg.norm(pred - kp[None, :, :, :2], axis=-1)
     area = np.asarray(mask_area, dtype=np.float64)
-    thr = alpha * np.sqrt(area)
-    thr = thr[:, None, None] if threshold_frame == "reference" else thr[None, :, None]
-    correct = (err < thr) & valid
-    total = int(valid.sum())
+    thr_all = alpha * np.sqrt(area)
+    keep_pairs = A * A * P <= pair_limit
+    pred_all = np.zeros((A, A, P, 2)) if keep_pairs else None
+    valid_all = np.zeros((A, A, P), bool) if keep_pairs else None
+    correct_n, total = 0, 0
+    kp_correct = np.zeros(P, np.int64)
+    kp_total = np.zeros(P, np.int64)
+    step = max(1, int(chunk_elements // max(1, A * P)))  # reference frames per chunk: memory O(A P), not O(A^2 P)
+    for i0 in range(0, A, step):
+        sl = slice(i0, min(A, i0 + step))
+        ii = np.arange(sl.start, sl.stop)
+        corners = V[:, tri_all[sl]]  # (A_j, c, P, 3, 3)
+        X = np.einsum("ipk,jipkc->ijpc", w_all[sl], corners)  # (c, A_j, P, 3)
+        proj = project(X, Kd[None, :, None])  # proj[i, j, p]: frame i's surface point seen in frame j
+        proj_self = proj[np.arange(len(ii)), ii]  # (c, P, 2)
+        flow = np.where(has[sl][:, None, :, None], proj - proj_self[:, None], 0.0)
+        pred = kp[sl][:, None, :, :2] + flow
+        valid = vis[sl][:, None, :] & vis[None, :, :]
+        valid[np.arange(len(ii)), ii] = False
+        err = np.linalg.norm(pred - kp[None, :, :, :2], axis=-1)
+        thr = thr_all[sl][:, None, None] if threshold_frame == "reference" else thr_all[None, :, None]
+        correct = (err < thr) & valid
+        correct_n += int(correct.sum())
+        total += int(valid.sum())
+        kp_correct += correct.sum(axis=(0, 1))
+        kp_total += valid.sum(axis=(0, 1))
+        if keep_pairs:
+            pred_all[sl], valid_all[sl] = pred, valid
     return {
-        "pck": 100.0 * correct.sum() / total if total else float("nan"),
-        "correct": int(correct.sum()),
+        "pck": 100.0 * correct_n / total if total else float("nan"),
+        "correct": correct_n,
         "total": total,
         "pairs": A * (A - 1),
-        "per_keypoint_correct": correct.sum(axis=(0, 1)),
-        "per_keypoint_total": valid.sum(axis=(0, 1)),
-        "pred": pred,
-        "valid": valid,
+        "per_keypoint_correct": kp_correct,
+        "per_keypoint_total": kp_total,
+        "pred": pred_all,
+        "valid": valid_all,
     }
 
 

@@ -242,6 +242,11 @@ def test_pck_transfer_matches_naive_loops():
         assert 0 < c0 < t0  # both outcomes occur, so the test can fail
         assert r["pairs"] == A * (A - 1)
         assert r["per_keypoint_total"].sum() == t0 and r["per_keypoint_correct"].sum() == c0
+        # one reference frame per chunk (long videos) and no pair arrays: the same counts
+        rc = _fast_pckt(kp, face_index, bary, verts, faces, K, area, alpha=0.3, threshold_frame=mode,
+                        chunk_elements=1, pair_limit=0)
+        assert (rc["correct"], rc["total"]) == (c0, t0) and rc["pred"] is None
+        np.testing.assert_array_equal(rc["per_keypoint_correct"], r["per_keypoint_correct"])
     with pytest.raises(ValueError, match="threshold_frame"):
         _fast_pckt(kp, face_index, bary, verts, faces, K, area, threshold_frame="middle")
 
