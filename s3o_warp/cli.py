@@ -23,7 +23,10 @@ def build_parser() -> argparse.ArgumentParser:
     from s3o_warp.config import PRESETS
 
     p = argparse.ArgumentParser(prog="s3o-fit", description="Fit shape, skeleton and motion to one video with masks.")
-    p.add_argument("sequence", nargs="?", help="sequence folder (images/ + masks/, or a DAVIS root/sequence); default: built-in quadruped")
+    p.add_argument("sequence", nargs="?", help="sequence folder (images/ + masks/), a DAVIS sequence folder, a DAVIS root "
+                   "with --name, or a video file / frame folder with --masks; default: the built-in quadruped")
+    p.add_argument("--masks", default=None, help="mask folder for a video file or a frame folder without masks/")
+    p.add_argument("--name", default=None, help="sequence name inside a DAVIS root (e.g. cows)")
     p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: CUDA when Warp sees a GPU, else cpu)")
     p.add_argument("--out", default=None, help="run directory (default: runs/<sequence name>)")
     p.add_argument("--config", default=None, help="TOML file with settings (see a run's config.toml)")
@@ -77,8 +80,8 @@ def _run(args) -> int:
         seq = Path(args.sequence)
         if not seq.exists():
             raise InputError(f"sequence folder {seq} does not exist; pass a folder with images/ and masks/")
-        out = Path(args.out or Path("runs") / seq.name)
-    metrics = fit(seq, out, cfg, device, resume=args.resume)
+        out = Path(args.out or Path("runs") / (args.name or seq.stem))
+    metrics = fit(seq, out, cfg, device, resume=args.resume, masks=args.masks, name=args.name)
     log.info("run directory: %s", out.resolve())
     iou = (metrics.get("mask_iou") or {}).get("mean")
     pck = (metrics.get("pck_t") or {}).get("pck")

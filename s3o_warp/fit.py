@@ -52,6 +52,10 @@ class FitData:
     conf_fwd: "FrameStore"  # (T-1,S,S) in [0,1]
     sequence_dir: Path
     frame_weight: torch.Tensor | None = None  # (T,) silhouette weight (objects leaving the frame count less)
+    open_kwargs: dict | None = None  # how to re-open the sequence (masks=, name=) for pictures
+    mask_dir: Path | None = None  # where the sequence's masks are (for scoring)
+    keypoints_file: Path | None = None  # keypoints.json beside the sequence, if any (scoring only)
+    ground_truth_dir: Path | None = None  # ground_truth/ beside the sequence, if any (scoring only)
 
     @property
     def num_frames(self) -> int:
@@ -108,7 +112,7 @@ class _PairField:
         return getattr(self.flow.pair(int(t)), self.field)
 
 
-def prepare_data(sequence_dir: Path, cfg: Config, run_dir: Path, device: torch.device) -> FitData:
+def prepare_data(sequence_dir: Path, cfg: Config, run_dir: Path, device: torch.device, masks=None, name=None) -> FitData:
     """Open the sequence, crop every frame and compute (or load) the forward flow and its confidence.
 
     Sequences of up to ``data.resident_max_frames`` frames live in (device) memory; longer ones are
@@ -116,13 +120,14 @@ def prepare_data(sequence_dir: Path, cfg: Config, run_dir: Path, device: torch.d
     """
     from s3o_warp import video
 
-    seq = video.open_sequence(sequence_dir, cfg=cfg.data)
+    open_kwargs = {"masks": masks, "name": name}
+    seq = video.open_sequence(sequence_dir, cfg=cfg.data, **open_kwargs)
     T = seq.num_frames
     if T < 2:
         raise InputError(f"sequence {sequence_dir} has {T} frame(s); the fit needs at least 2")
     S = cfg.data.crop_size
     resident = T <= cfg.data.resident_max_frames
-    masks = np.zeros((T, S, S), np.bool_)
+    mask_crops = np.zeros((T, S, S), np.bool_)
     c2f = np.zeros((T, 3, 3), np.float32)
     if resident:
         imgs = np.zeros((T, S, S, 3), np.uint8)
@@ -133,7 +138,7 @@ def prepare_data(sequence_dir: Path, cfg: Config, run_dir: Path, device: torch.d
         imgs = np.lib.format.open_memmap(path, mode="w+", dtype=np.uint8, shape=(T, S, S, 3))
     for k, crop in enumerate(seq.crops()):
         imgs[k] = crop.image
-        masks[k] = crop.mask
+        mask_crops[k] = crop.mask
         c2f[k] = crop.crop_to_frame
     flow = video.compute_flow(seq, run_dir / "cache", cfg.data)
     dev = dict(device=device)
@@ -143,7 +148,7 @@ def prepare_data(sequence_dir: Path, cfg: Config, run_dir: Path, device: torch.d
         frame_size=tuple(int(x) for x in seq.size),
         fps=float(seq.fps),
         images=FrameStore(imgs, device, scale=1.0 / 255.0, resident=resident),
-        masks=torch.from_numpy(masks.astype(np.float32)).to(**dev),
+        masks=torch.from_numpy(mask_crops.astype(np.float32)).to(**dev),
         crop_to_frame=torch.from_numpy(c2f).to(**dev),
         crop_scale=torch.from_numpy(1.0 / c2f[:, 0, 0]).to(**dev),
         flow_fwd=FrameStore(_PairField(flow, "flow_fwd"), device, resident=resident),
@@ -152,6 +157,10 @@ def prepare_data(sequence_dir: Path, cfg: Config, run_dir: Path, device: torch.d
         frame_weight=torch.as_tensor(
             np.where(np.asarray(seq.touches_border), cfg.data.border_weight, 1.0), dtype=torch.float32, device=device
         ),
+        open_kwargs=open_kwargs,
+        mask_dir=Path(seq.mask_files[0]).parent,
+        keypoints_file=seq.keypoints_file,
+        ground_truth_dir=seq.ground_truth_dir,
     )
 
 
@@ -765,13 +774,17 @@ def _check_writable(out_dir: Path) -> None:
         raise InputError(f"run directory {out_dir} is not writable ({p} is not a writable folder); choose another --out")
 
 
-def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool = False) -> dict:
-    """Fit one sequence and write the run directory; returns the metrics dict."""
+def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool = False, masks=None, name=None) -> dict:
+    """Fit one sequence and write the run directory; returns the metrics dict.
+
+    ``sequence_dir`` is a sequence folder, a DAVIS root (with ``name``), a DAVIS sequence folder, or a
+    video file / frame folder with a separate ``masks`` folder (see ``s3o_warp.video.open_sequence``).
+    """
     out_dir = Path(out_dir)
     _check_writable(out_dir)
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
-    data = prepare_data(Path(sequence_dir), cfg, out_dir, device)  # validates the input before writing anything
+    data = prepare_data(Path(sequence_dir), cfg, out_dir, device, masks=masks, name=name)  # validates input first
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as e:

@@ -93,7 +93,10 @@ def write_run(fitter) -> dict:
         log.warning("export skipped: %s", e)
     from s3o_warp.metrics import evaluate_run
 
-    metrics = evaluate_run(run, fitter.data.sequence_dir, object_id=fitter.cfg.data.object_id, progress=False)
+    d = fitter.data
+    metrics = evaluate_run(run, None, masks=d.mask_dir, keypoints=d.keypoints_file, ground_truth=d.ground_truth_dir,
+                           object_id=fitter.cfg.data.object_id, progress=False)
+    metrics["sequence"] = str(d.sequence_dir)
     metrics["seconds"] = round(fitter.history[-1]["seconds"], 2) if fitter.history else None
     tmp = run / "metrics.json.tmp"
     tmp.write_text(json.dumps(metrics, indent=2, default=float))

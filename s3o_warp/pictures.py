@@ -146,7 +146,7 @@ def write_renders(run: Path, rig, data, history, data_cfg=None) -> list[Path]:
     from s3o_warp.config import DataConfig
 
     (Path(run) / "renders").mkdir(parents=True, exist_ok=True)
-    seq = video.open_sequence(data.sequence_dir, cfg=data_cfg or DataConfig())
+    seq = video.open_sequence(data.sequence_dir, cfg=data_cfg or DataConfig(), **(data.open_kwargs or {}))
     paths = [overlay_video(Path(run), rig, seq, data.fps), loss_plot(Path(run), history)]
     paths.append(skeleton_overlay(Path(run), rig, seq))
     paths += canonical_views(Path(run), rig, fps=data.fps)

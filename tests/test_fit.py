@@ -255,3 +255,26 @@ def test_m_step_keeps_the_posed_mesh_and_the_loss(tiny_sequence, tmp_path, epoch
     sum(w * v for w, v in terms.values()).backward()
     f._step_window(frames)
     assert len(f.skel.parents) == f.model.num_bones
+
+
+def test_cli_fits_a_video_file_with_a_mask_folder(tiny_sequence, tmp_path):
+    import cv2
+
+    from s3o_warp.cli import main as cli_main
+
+    frames = sorted((tiny_sequence / "images").glob("*.png"))
+    first = cv2.imread(str(frames[0]))
+    path = tmp_path / "clip.avi"
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 12.0, (first.shape[1], first.shape[0]))
+    for f in frames:
+        vw.write(cv2.imread(str(f)))
+    vw.release()
+    run = tmp_path / "run"
+    rc = cli_main([str(path), "--masks", str(tiny_sequence / "masks"), "--out", str(run), "--preset", "smoke",
+                   "--set", "data.crop_size=64"])
+    assert rc == 0
+    m = json.loads((run / "metrics.json").read_text())
+    assert m["frames"] == len(frames)
+    assert m["mask_iou"]["mean"] > 0.3 and m["pck_t"] is not None  # masks and keypoints beside the mask folder
+    assert np.load(run / "motion.npz")["fps"] == pytest.approx(12.0)
+    assert (run / "renders" / "overlay.mp4").is_file() or (run / "renders" / "overlay.gif").is_file()
