@@ -159,6 +159,62 @@ def _image_size(v: np.ndarray, path: Path) -> tuple[int, int]:
     return int(v[0]), int(v[1])
 
 
+def load_usd_predictions(path: Path) -> Predictions:
+    """Per-frame camera-space geometry of an exported USD (UsdSkel or baked) for scoring.
+
+    Posed points come from UsdSkel's own skinning (``UsdSkel.Cache``) or the baked point samples,
+    mapped to the world by the mesh's transform and into each frame's OpenCV camera frame by the
+    animated camera; intrinsics are recovered from its focal length and apertures (the inverse of
+    DESIGN.md's formulas). Frame names and the image size come from the layer's ``s3o:`` custom data.
+    """
+    from pxr import Usd, UsdGeom, UsdSkel
+
+    stage = Usd.Stage.Open(str(path))
+    if stage is None:
+        raise InputError(f"{path}: USD cannot open this file; re-export it with scripts/export.py")
+    data = stage.GetRootLayer().customLayerData
+    if "s3o:imageSize" not in data:
+        raise InputError(f"{path}: not an s3o-warp export (no s3o:imageSize layer data); score its run directory instead")
+    H, W = (int(x) for x in data["s3o:imageSize"])
+    t0, t1 = int(stage.GetStartTimeCode()), int(stage.GetEndTimeCode())
+    names = [str(n) for n in data.get("s3o:frameNames", [])] or [f"{k:06d}" for k in range(t1 - t0 + 1)]
+    meshes = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
+    cams = [p for p in stage.Traverse() if p.IsA(UsdGeom.Camera)]
+    if not meshes or not cams:
+        raise InputError(f"{path}: needs one mesh and one camera; re-export it with scripts/export.py")
+    mesh, cam = UsdGeom.Mesh(meshes[0]), UsdGeom.Camera(cams[0])
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get())
+    if (counts != 3).any():
+        raise InputError(f"{path}: only triangle meshes can be scored")
+    faces = np.array(mesh.GetFaceVertexIndicesAttr().Get(), np.int32).reshape(-1, 3)  # a writable copy
+    skel_root = UsdSkel.Root.Find(meshes[0])
+    cache = skel_query = skin_query = None
+    if skel_root:
+        cache = UsdSkel.Cache()
+        cache.Populate(skel_root, Usd.PrimDefaultPredicate)
+        skin_query = cache.GetSkinningQuery(meshes[0])
+        skel_query = cache.GetSkelQuery(UsdSkel.BindingAPI(meshes[0]).GetInheritedSkeleton())
+    verts, Ks = [], []
+    gl_to_cv = np.diag([1.0, -1.0, -1.0])
+    for t in range(t0, t1 + 1):
+        pts = mesh.GetPointsAttr().Get(t)
+        if skin_query is not None and skin_query:
+            skin_query.ComputeSkinnedPoints(skel_query.ComputeSkinningTransforms(t), pts, t)
+        m = np.array(UsdGeom.Xformable(meshes[0]).ComputeLocalToWorldTransform(t))  # row-vector
+        world = np.asarray(pts, np.float64) @ m[:3, :3] + m[3, :3]
+        c2w = np.array(cam.ComputeLocalToWorldTransform(t))
+        w2c = np.linalg.inv(c2w)
+        gl = world @ w2c[:3, :3] + w2c[3, :3]
+        verts.append(gl @ gl_to_cv.T)
+        f = cam.GetFocalLengthAttr().Get(t)
+        hap, vap = cam.GetHorizontalApertureAttr().Get(t), cam.GetVerticalApertureAttr().Get(t)
+        hoff, voff = cam.GetHorizontalApertureOffsetAttr().Get(t), cam.GetVerticalApertureOffsetAttr().Get(t)
+        fx, fy = f * W / hap, f * H / vap
+        cx, cy = W / 2 - 0.5 - hoff * W / hap, H / 2 - 0.5 + voff * H / vap
+        Ks.append([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+    return Predictions(np.asarray(verts, np.float32), faces, np.asarray(Ks, np.float32), (H, W), names[: len(verts)], None, path)
+
+
 def load_predictions(run) -> Predictions:
     """Read a run's ``motion.npz`` (the run directory or the file itself).
 
@@ -166,11 +222,14 @@ def load_predictions(run) -> Predictions:
     (H, W), ``frame_names`` (T,) str; optional ``joints_cam`` (T, J, 3). Other keys are ignored.
 
     Raises:
-        InputError: missing file or key, wrong shapes, a USD file (not scorable yet).
+        InputError: missing file or key, wrong shapes. A ``.usd``/``.usda``/``.usdc`` path is read with
+            :func:`load_usd_predictions`.
     """
     path = Path(run)
     if path.suffix.lower() in _USD_EXTS:
-        raise InputError(f"{path}: scoring a USD file is not supported yet; pass the run directory or its motion.npz")
+        if not path.is_file():
+            raise InputError(f"{path}: no such USD file; pass an exported .usd/.usda/.usdc or a run directory")
+        return load_usd_predictions(path)
     if path.is_dir():
         path = path / "motion.npz"
     fix = "pass a run directory that holds motion.npz (written by s3o-fit) or the .npz itself"
