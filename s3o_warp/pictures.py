@@ -78,11 +78,9 @@ def posed_bone_centres(rig, t: int) -> np.ndarray:
     return (obj @ rig.root[t].T)[:, :3]
 
 
-def skeleton_overlay(run: Path, rig, sequence, frame: int = 0) -> Path | None:
-    """Bones (centre to joint segments) and joints of the fit drawn over one input frame (PNG)."""
-    if rig.joints is None or rig.joint_pairs is None or len(rig.joints) == 0:
-        return None
-    img = np.ascontiguousarray(sequence.image(frame).copy())
+def draw_skeleton(img: np.ndarray, rig, frame: int) -> np.ndarray:
+    """The fit's bones (centre-to-joint segments), bone centres and joints drawn over an RGB frame."""
+    img = np.ascontiguousarray(img.copy())
     K = rig.K[frame]
 
     def px(p3):
@@ -98,11 +96,19 @@ def skeleton_overlay(run: Path, rig, sequence, frame: int = 0) -> Path | None:
         cv2.circle(img, px(p3), 3, (0, 160, 255), -1, cv2.LINE_AA)
     for p3 in jc:
         cv2.circle(img, px(p3), 4, (255, 0, 0), -1, cv2.LINE_AA)
+    return img
+
+
+def skeleton_overlay(run: Path, rig, sequence, fps: float = 24.0) -> list[Path]:
+    """The skeleton over every input frame (``skeleton.mp4``, GIF fallback) and over frame 0 (``skeleton.png``)."""
+    if rig.joints is None or rig.joint_pairs is None or len(rig.joints) == 0:
+        return []
+    frames = [draw_skeleton(sequence.image(k), rig, k) for k in range(rig.num_frames)]
     path = run / "renders" / "skeleton.png"
     tmp = path.with_name("skeleton.tmp.png")
-    cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+    cv2.imwrite(str(tmp), cv2.cvtColor(frames[0], cv2.COLOR_RGB2BGR))
     os.replace(tmp, path)
-    return path
+    return [path, _write_video(frames, run / "renders" / "skeleton.mp4", fps)]
 
 
 def loss_plot(run: Path, history: list[dict]) -> Path | None:
@@ -148,7 +154,7 @@ def write_renders(run: Path, rig, data, history, data_cfg=None) -> list[Path]:
     (Path(run) / "renders").mkdir(parents=True, exist_ok=True)
     seq = video.open_sequence(data.sequence_dir, cfg=data_cfg or DataConfig(), **(data.open_kwargs or {}))
     paths = [overlay_video(Path(run), rig, seq, data.fps), loss_plot(Path(run), history)]
-    paths.append(skeleton_overlay(Path(run), rig, seq))
+    paths += skeleton_overlay(Path(run), rig, seq, data.fps)
     paths += canonical_views(Path(run), rig, fps=data.fps)
     paths = [p for p in paths if p is not None]
     for p in paths:
