@@ -27,7 +27,8 @@ class Coarse3D:
     Attributes:
         nodes: (N, 3) float64 node positions in the object frame (same order as ``Skeleton2D.nodes``).
         edges: (E, 2) int64 node indices (same as ``Skeleton2D.edges``).
-        centres: (E, 3) float64 ellipsoid centres = midpoints of their 3D edges.
+        centres: (E, 3) float64 ellipsoid centres = midpoints of their 3D edges (paired limbs: shifted by
+            ``edge_dz`` along z at their junction end, so the whole limb sits off the plane).
         rotations: (E, 3, 3) float64 proper rotations whose columns are the ellipsoid axes in the object
             frame; column 0 is the long axis (along the edge). Concretely, a point p is inside
             ellipsoid e iff ``|| (rotations[e].T @ (p - centres[e])) / radii[e] || <= 1``.
@@ -41,6 +42,8 @@ class Coarse3D:
         K: (3, 3) float64 intrinsics of the canonical frame (pixels).
         depth: the depth of the body centre along the camera's z axis.
         dz: the symmetric limbs' z offset (object-frame units).
+        edge_dz: (E,) float64 z shift of each edge's ellipsoid at its junction end (0 off the pairs; at most
+            dz and ``junction_dz_fraction`` x the junction's radius, so the limb stays attached).
     """
 
     nodes: np.ndarray
@@ -56,6 +59,7 @@ class Coarse3D:
     K: np.ndarray
     depth: float
     dz: float
+    edge_dz: np.ndarray | None = None
 
     def project(self, points: np.ndarray) -> np.ndarray:
         """(M, 3) object-frame points -> (M, 2) float64 pixels (x, y) in the canonical frame."""
@@ -158,7 +162,9 @@ def lift_to_3d(skel: Skeleton2D, K, depth: float, settings: CoarseSettings | Non
 
     Every node is back-projected through K at ``depth`` (camera z), except the end nodes of symmetric
     limb pairs, which are back-projected at ``depth -+ dz`` (dz = ``dz_fraction`` x the torso radius)
-    so they keep their pixel but sit on either side of the symmetry plane z = 0. The main chain
+    so they keep their pixel but sit on either side of the symmetry plane z = 0; the ellipsoid of a
+    paired limb is shifted off the plane at its junction end too (by up to dz, at most
+    ``junction_dz_fraction`` of the junction's radius), so the two legs do not fuse. The main chain
     (torso, neck, head, tail, non-paired limbs) lies on z = 0. The origin is the body centre: the root
     junction (or, without junction, the arc-length midpoint of the longest edge's path) at ``depth``.
     Symmetric limbs: two leaf edges (ending in endpoints) of the same junction with length ratio <=
@@ -214,15 +220,26 @@ def lift_to_3d(skel: Skeleton2D, K, depth: float, settings: CoarseSettings | Non
     nodes = (depth + node_z)[:, None] * (homog @ Kinv.T) - C
 
     E = len(skel.edges)
+    # a paired limb is moved off the plane as a whole (parallel to it), not only at its end node:
+    # a leg hanging from the spine at z = 0 would fuse with its partner along the upper half
+    # (at most ``junction_dz_fraction`` of the junction's own radius there, so the limb stays attached)
+    edge_dz = np.zeros(E)
+    for e1, e2 in pairs:
+        j = int(np.intersect1d(skel.edges[e1], skel.edges[e2])[0])
+        shift = min(dz, s.junction_dz_fraction * skel.node_radius[j] * depth / f)
+        edge_dz[e1], edge_dz[e2] = -shift, shift
     centres = np.empty((E, 3))
     rotations = np.empty((E, 3, 3))
     radii = np.empty((E, 3))
     for e, (u, v) in enumerate(skel.edges):
-        a = nodes[v] - nodes[u]
+        pu, pv = nodes[u].copy(), nodes[v].copy()
+        pu[2] = pu[2] if node_z[u] != 0 else pu[2] + edge_dz[e]
+        pv[2] = pv[2] if node_z[v] != 0 else pv[2] + edge_dz[e]
+        a = pv - pu
         length = float(np.linalg.norm(a))
         r = skel.edge_radius[e] * depth / f
         axis = a / length if length > 1e-12 else np.array([1.0, 0.0, 0.0])
-        centres[e] = 0.5 * (nodes[u] + nodes[v])
+        centres[e] = 0.5 * (pu + pv)
         rotations[e] = _frame_of_axis(axis)
         radii[e] = (0.5 * length + s.end_pad * r, r, r)
 
@@ -237,7 +254,7 @@ def lift_to_3d(skel: Skeleton2D, K, depth: float, settings: CoarseSettings | Non
     return Coarse3D(nodes=nodes, edges=skel.edges.copy(), centres=centres, rotations=rotations, radii=radii,
                     sym_pairs=np.array(pairs, np.int64).reshape(-1, 2),
                     symmetry_plane=(np.array([0.0, 0.0, 1.0]), 0.0), root_transform=T, root=int(skel.root),
-                    root_edge=root_edge, K=K, depth=float(depth), dz=float(dz))
+                    root_edge=root_edge, K=K, depth=float(depth), dz=float(dz), edge_dz=edge_dz)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -53,14 +53,16 @@ class CoarseSettings:
     """Merge two junctions joined by an edge when closer than merge_factor x the larger radius (Hi-LASSIE: 0.8)."""
     canonical_size: int = 320
     """canonical_frame() shrinks each mask so its longer side is at most this many pixels (speed); 0 = as is."""
-    sym_length_ratio: float = 1.6
+    sym_length_ratio: float = 2.0
     """Two leaf edges of one junction may be a symmetric limb pair if longer / shorter length <= this."""
     sym_radius_ratio: float = 1.6
     """... and larger / smaller mean radius <= this ..."""
-    sym_max_angle_deg: float = 60.0
+    sym_max_angle_deg: float = 75.0
     """... and the angle between their 2D directions (from the junction) <= this (stands in for DINO features)."""
     dz_fraction: float = 0.5
     """Symmetric limbs' end nodes go to z = +-dz_fraction x torso (root) radius, in metres of the object frame."""
+    junction_dz_fraction: float = 0.8
+    """A paired limb's junction end goes off the plane by min(dz, this x the junction's 2D radius)."""
     end_pad: float = 1.0
     """Ellipsoid long semi-axis = half the 3D edge length + end_pad x its short radius (Hi-LASSIE: 1.0)."""
     target_vertices: int = 2000
@@ -82,7 +84,7 @@ class CoarseSettings:
 
     def __post_init__(self) -> None:
         positive = ("prune_factor", "spur_protrusion", "merge_factor", "end_pad", "smooth_max", "smooth_sigma",
-                    "dz_fraction", "taubin_iterations", "canonical_size")
+                    "dz_fraction", "junction_dz_fraction", "taubin_iterations", "canonical_size")
         for name in positive:
             if getattr(self, name) < 0:
                 raise ConfigError(f"coarse.{name} must be >= 0, got {getattr(self, name)}; set a non-negative value")

@@ -87,6 +87,12 @@ class MotionConfig:
     """Largest turn rate of the hypotheses, degrees per frame (rates spread evenly in +-this, 0 included)."""
     hypothesis_steps: int = 30
     """Warm-up steps spent scoring each hypothesis."""
+    resample_epochs: int = 1
+    """Even resampling of the canonical mesh (paper B) every this many epochs of the joint phase; 0 = never."""
+    resample_vertices: int = 0
+    """Vertex count the resampled mesh aims at; 0 = the coarse mesh's count."""
+    turn_rate: float | None = None
+    """Known camera turn rate about the object's vertical axis, degrees per frame: used as is, no hypotheses scored."""
     warmup_sweep: float = 0.5
     """Fraction of the warm-up that sweeps windows outward from the canonical frame, each new frame starting
     from its nearest already-fitted neighbour's pose (0 = random windows only)."""

@@ -526,7 +526,8 @@ class Fitter:
                 self._good = None
                 self.save_checkpoint()
             n = self.phase_steps(phase)
-            if phase == "warmup" and self.step == 0 and self.cfg.motion.hypotheses > 1:
+            if phase == "warmup" and self.step == 0 and (self.cfg.motion.hypotheses > 1
+                                                         or self.cfg.motion.turn_rate is not None):
                 self.select_hypothesis()
             bar = tqdm(total=n, initial=self.step, desc=f"{phase:>6}", dynamic_ncols=True, leave=True)
             while self.step < n:
@@ -603,8 +604,11 @@ class Fitter:
             with torch.no_grad():
                 m.root_R0.copy_(base["root_R0"] @ axis_angle_to_matrix(aa))
 
-        scores = []
-        for rate in rates:
+        if mc.turn_rate is not None:
+            rates, scores = np.array([float(mc.turn_rate)]), [float("nan")]
+        else:
+            scores = []
+        for rate in rates if mc.turn_rate is None else []:
             apply(float(rate))
             self.gen.set_state(gen_state)
             self.opt = self._make_optimizer()
@@ -624,7 +628,7 @@ class Fitter:
             self.step = 0
             tail = losses[-max(1, len(losses) // 3):]
             scores.append(float(np.mean(tail)))
-        best = float(rates[int(np.argmin(scores))])
+        best = float(rates[0] if mc.turn_rate is not None else rates[int(np.argmin(scores))])
         apply(best)
         m.visited.zero_()
         self.gen.set_state(gen_state)
@@ -666,6 +670,43 @@ class Fitter:
         epoch = self.step // self.steps_per_epoch(n) - 1
         if m_step(self.model, self.opt, self.data, self.cfg, self.skel, epoch):
             self._good = None  # shapes changed: the NaN roll-back target is taken anew
+        every = self.cfg.motion.resample_epochs
+        if every > 0 and (epoch + 1) % every == 0:
+            self.resample_mesh()
+
+    @torch.no_grad()
+    def resample_mesh(self) -> None:
+        """Even resampling (paper B): same surface, uniform vertices; colours carried, skinning follows the bones."""
+        from s3o_warp.resample import ResampleSettings, even_resample
+
+        m, mc = self.model, self.cfg.motion
+        target = mc.resample_vertices or len(self.coarse.init.verts)
+        n0 = m.verts.shape[0]
+        v, f, col = even_resample(m.verts.detach(), m.faces, ResampleSettings(target_vertices=int(target)),
+                                  attributes=m.color_logits.detach())
+        self._set_mesh(v, f, col)
+        self._log({"phase": "eval", "step": self.step, "seconds": round(time.perf_counter() - self.t0, 3),
+                   "what": "resample", "vertices_before": int(n0), "vertices_after": int(v.shape[0])})
+        log.info("even resampling: %d -> %d vertices", n0, v.shape[0])
+
+    def _set_mesh(self, verts: torch.Tensor, faces: torch.Tensor, color_logits: torch.Tensor) -> None:
+        """Swap the canonical mesh; the optimiser keeps every other parameter's state (and all learning rates)."""
+        from s3o_warp.kernels.regularisers import mesh_edges
+
+        m = self.model
+        m.verts = torch.nn.Parameter(verts.to(m.bone_centers).contiguous())
+        m.color_logits = torch.nn.Parameter(color_logits.to(m.bone_centers).contiguous())
+        m.faces = faces.to(device=m.bone_centers.device, dtype=torch.int64).contiguous()
+        self.edges = mesh_edges(m.faces).to(self.device)
+        old = self.opt
+        lrs = {g["name"]: g["lr"] for g in old.param_groups}
+        self.opt = self._make_optimizer()
+        for g in self.opt.param_groups:
+            g["lr"] = lrs.get(g["name"], g["lr"])
+            for p in g["params"]:
+                if p in old.state:
+                    self.opt.state[p] = old.state[p]
+        self._good = None
 
     # -- checkpoints --------------------------------------------------------------------------------
     def state(self) -> dict:
@@ -720,6 +761,9 @@ class Fitter:
                 f"not '{self.data.name}' ({self.data.num_frames} frames); use another --out or drop --resume"
             )
         self._resize_bones(st["model"]["bone_centers"].shape[0])
+        sm = st["model"]
+        if sm["verts"].shape != self.model.verts.shape or sm["faces"].shape != self.model.faces.shape:
+            self._set_mesh(sm["verts"], sm["faces"], sm["color_logits"])  # resampled mesh: values loaded below
         self.model.load_state_dict(st["model"])
         from s3o_warp.mstep import SkeletonState
 

@@ -270,16 +270,26 @@ def test_lift_ellipsoids_follow_edges(lifted):
     np.testing.assert_allclose(np.einsum("eji,ejk->eik", R, R), np.broadcast_to(np.eye(3), R.shape), atol=1e-12)
     np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-12)
     f = 0.5 * (K[0, 0] + K[1, 1])
+    paired = set(c.sym_pairs.ravel().tolist())
     for e, (u, v) in enumerate(c.edges):
-        a = c.nodes[v] - c.nodes[u]
+        pu, pv = c.nodes[u].copy(), c.nodes[v].copy()
+        if e in paired:  # the whole limb sits off the plane: its junction end is shifted like its foot
+            assert 0 < abs(c.edge_dz[e]) <= c.dz
+            for p in (pu, pv):
+                if p[2] == 0:
+                    p[2] = c.edge_dz[e]
+            assert np.sign(pu[2]) == np.sign(pv[2]) == np.sign(c.edge_dz[e])
+        else:
+            assert c.edge_dz[e] == 0
+        a = pv - pu
         length = np.linalg.norm(a)
-        np.testing.assert_allclose(c.centres[e], 0.5 * (c.nodes[u] + c.nodes[v]))
+        np.testing.assert_allclose(c.centres[e], 0.5 * (pu + pv))
         np.testing.assert_allclose(R[e][:, 0], a / length, atol=1e-12)
         r = sk.edge_radius[e] * 3.0 / f
         np.testing.assert_allclose(c.radii[e], [0.5 * length + r, r, r])
         # both end nodes lie inside their ellipsoid (end_pad = 1 reaches r beyond them)
-        for n in (u, v):
-            q = np.linalg.norm(R[e].T @ (c.nodes[n] - c.centres[e]) / c.radii[e])
+        for p in (pu, pv):
+            q = np.linalg.norm(R[e].T @ (p - c.centres[e]) / c.radii[e])
             assert q < 1
 
 

@@ -58,7 +58,8 @@ def test_small_fit_raises_iou_and_writes_the_run_directory(tiny_sequence, tmp_pa
     run = tmp_path / "run"
     metrics = fit(tiny_sequence, run, cfg, torch.device("cpu"))
     log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
-    evals = {r["what"]: r["iou_all_frames"] for r in log if r["phase"] == "eval"}
+    evals = {r["what"]: r["iou_all_frames"] for r in log if r["phase"] == "eval" and "iou_all_frames" in r}
+    assert any(r.get("what") == "resample" for r in log)  # even resampling ran at the epoch ends
     # hard-render IoU over all frames: the coarse model at the start against the end of the fit
     assert evals["final"] > evals["initial"] + 0.1, evals
     for name in ("config.toml", "canonical.ply", "skeleton.json", "motion.npz", "metrics.json", "quad.usdc", "quad.glb"):
@@ -214,21 +215,27 @@ def test_streamed_frames_give_the_same_fit_as_resident_ones(tiny_sequence, tmp_p
         torch.testing.assert_close(pb[k], pa[k], rtol=0, atol=0, msg=k)
 
 
-@pytest.mark.parametrize("epoch", [0, 2])  # 0: shift + growth, 2 (= e1): upsampling
-def test_m_step_keeps_the_posed_mesh_and_the_loss(tiny_sequence, tmp_path, epoch):
-    from s3o_warp.mstep import m_step
-
+def _joint_fitter(tiny_sequence, tmp_path):
+    """A Fitter in its joint phase after 3 steps on frames 0-3 (the bones have some motion)."""
     cfg = _cfg(**{"coarse.steps": 5, "motion.warmup_steps": 5})
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
     f.phase = "joint"
     f.opt = f._make_optimizer()
     frames = torch.arange(0, 4)
-    for _ in range(3):  # give the bones some motion first
+    for _ in range(3):
         f.opt.zero_grad()
         terms, _, _ = f.motion_losses(frames)
         sum(w * v for w, v in terms.values()).backward()
         f._step_window(frames)
+    return cfg, data, f, frames
+
+
+@pytest.mark.parametrize("epoch", [0, 2])  # 0: shift + growth, 2 (= e1): upsampling
+def test_m_step_keeps_the_posed_mesh_and_the_loss(tiny_sequence, tmp_path, epoch):
+    from s3o_warp.mstep import m_step
+
+    cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     with torch.no_grad():
         before = f.model(frames).clone()
         loss0 = float(sum(w * v for w, v in f.motion_losses(frames)[0].values()))
@@ -255,6 +262,36 @@ def test_m_step_keeps_the_posed_mesh_and_the_loss(tiny_sequence, tmp_path, epoch
     sum(w * v for w, v in terms.values()).backward()
     f._step_window(frames)
     assert len(f.skel.parents) == f.model.num_bones
+
+
+def test_even_resampling_in_the_fit_keeps_the_render_and_the_loss(tiny_sequence, tmp_path):
+    from s3o_warp.kernels.raster import rasterize
+
+    cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
+    m, S = f.model, data.crop_size
+
+    def state():
+        with torch.no_grad():
+            fi, _, _ = rasterize(m(frames), m.faces, m.intrinsics_crop(frames), (S, S))
+            return (fi >= 0), float(sum(w * v for w, v in f.motion_losses(frames)[0].values()))
+
+    sil0, loss0 = state()
+    n0, bones_state = m.verts.shape[0], f.opt.state[m.bone_aa]["exp_avg"].clone()
+    f.resample_mesh()
+    sil1, loss1 = state()
+    iou = float((sil0 & sil1).sum() / (sil0 | sil1).sum())
+    assert iou > 0.9, iou  # the same surface, posed by the same skeleton
+    assert abs(loss1 - loss0) < 0.15 * loss0, (loss0, loss1)
+    assert abs(m.verts.shape[0] - len(f.coarse.init.verts)) <= 0.15 * len(f.coarse.init.verts) or m.verts.shape[0] != n0
+    assert f.edges.max() < m.verts.shape[0]
+    # the optimiser keeps the motion's Adam state and steps the new vertices
+    torch.testing.assert_close(f.opt.state[m.bone_aa]["exp_avg"], bones_state)
+    v0 = m.verts.detach().clone()
+    f.opt.zero_grad()
+    terms, _, _ = f.motion_losses(frames)
+    sum(w * v for w, v in terms.values()).backward()
+    f._step_window(frames)
+    assert not torch.equal(v0, m.verts.detach())
 
 
 def test_cli_fits_a_video_file_with_a_mask_folder(tiny_sequence, tmp_path):
