@@ -67,6 +67,35 @@ def test_small_fit_raises_iou_and_writes_the_run_directory(tiny_sequence, tmp_pa
     assert metrics["mask_iou"]["mean"] > 0.6
     assert metrics["pck_t"]["pck"] is not None
     _check_exported_fit(run, "quad")
+    _check_skeleton_shape(run, tiny_sequence, metrics)
+
+
+def _check_skeleton_shape(run, sequence, metrics):
+    """The learned skeleton has the quadruped's shape: a joint on each of the four legs, the tail and the head.
+
+    Tolerance: after the run's similarity alignment, in at least half of the frames, each leg (shoulder or
+    hip -> foot) has a learned joint within 5 % of the bounding-box diagonal of its ground-truth chain, and
+    the tail and the head (nose) within 10 % (measured on this CI fit: legs 1-2.5 joints at 5 %, tail and
+    nose 1 joint at 10 %, none at 5 %).
+    """
+    from s3o_warp import metrics as M
+
+    pred, gt = M.load_predictions(run), M.load_ground_truth(sequence / "ground_truth")
+    a = metrics["shape_3d"]["alignment"]
+    sim = M.Similarity(a["scale"], np.array(a["rotation"]), np.array(a["translation"]))
+    diag = M.bbox_diagonal(gt.verts)
+
+    def covered(tol):
+        cov = M.limb_coverage(pred.joints_cam, gt.joints, gt.joint_parents, diag, sim, list(gt.joint_names),
+                              tol=tol, min_joints=1)
+        return {limb["limb"]: limb["covered"] for limb in cov["limbs"]}
+
+    legs, ends = covered(0.05), covered(0.10)
+    assert all(legs[k] for k in ("foot_fl", "foot_fr", "foot_bl", "foot_br")), legs
+    assert ends["tail_tip"] and ends["nose"], ends
+    parents = np.array([b["parent"] for b in json.loads((run / "skeleton.json").read_text())["bones"]])
+    assert (parents == -1).sum() == 1
+    assert len(set(range(len(parents))) - set(parents.tolist())) >= 6  # at least six leaf bones: 4 legs, tail, head
 
 
 def _check_exported_fit(run, name):
