@@ -70,6 +70,11 @@ class CoarseConfig:
     """Weight of the symmetry loss (eq. 16)."""
     w_lap: float = 2.0
     """Weight of the Laplacian smoothing loss (eq. 17)."""
+    lap_relative: bool = True
+    """Laplacian term on the change from the lifted shape (L(X - X_init)); false = on the shape itself,
+    whose minimum is a flat mesh: with one view nothing else holds the depth."""
+    freeze_depth: bool = True
+    """Move vertices only in the canonical frame's image plane (x, y): one view says nothing about depth."""
 
 
 @dataclass
@@ -125,6 +130,9 @@ class MotionConfig:
     """Rigidity regulariser: dynamic (S3O), arap (the ablation) or none."""
     w_lap: float = 1.0
     """Weight of the Laplacian smoothing loss on the canonical mesh."""
+    lap_relative: bool = True
+    """Laplacian term on the change from a reference shape (the mesh at the joint phase's start and after each
+    even resampling); false = on the shape itself, which shrinks the mesh where the views do not hold it (depth)."""
     w_sym: float = 0.2
     """Weight of the symmetry loss on the canonical mesh."""
     w_smooth: float = 0.1

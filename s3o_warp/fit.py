@@ -28,7 +28,7 @@ from s3o_warp.model import ModelInit, S3OModel
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -269,6 +269,7 @@ class Fitter:
         self.coarse = coarse_res
         self.model = S3OModel(coarse_res.init).to(device)
         self.edges = mesh_edges(self.model.faces).to(device)
+        self.lap_ref = self.model.verts.detach().clone()  # reference shape of the relative Laplacian term
         self.sym_plane = (torch.as_tensor(coarse_res.sym_plane[0], device=device), coarse_res.sym_plane[1])
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.phase = PHASES[0]
@@ -385,7 +386,7 @@ class Fitter:
         if part_terms:
             terms["part"] = (cc.w_part, torch.stack(part_terms).mean())
         terms["sym"] = (cc.w_sym, symmetry_loss(m.verts, self.sym_plane))
-        terms["lap"] = (cc.w_lap, laplacian_loss(m.verts, m.faces))
+        terms["lap"] = (cc.w_lap, laplacian_loss(m.verts - self.lap_ref if cc.lap_relative else m.verts, m.faces))
         return terms, sil, d.masks[fr]
 
     def sweep_starts(self) -> list[int]:
@@ -479,7 +480,7 @@ class Fitter:
             else:
                 terms["rigid"] = (mc.w_rigid, arap_loss(verts, self.edges))
         if self.phase == "joint":
-            terms["lap"] = (mc.w_lap, laplacian_loss(m.verts, m.faces))
+            terms["lap"] = (mc.w_lap, laplacian_loss(m.verts - self.lap_ref if mc.lap_relative else m.verts, m.faces))
             terms["sym"] = (mc.w_sym, symmetry_loss(m.verts, self.sym_plane))
         smooth = (
             L.temporal_smoothness(m.root_aa)
@@ -524,6 +525,7 @@ class Fitter:
                 self.phase, self.step = phase, 0
                 self.opt = self._make_optimizer()
                 self._good = None
+                self.lap_ref = self.model.verts.detach().clone()
                 self.save_checkpoint()
             n = self.phase_steps(phase)
             if phase == "warmup" and self.step == 0 and (self.cfg.motion.hypotheses > 1
@@ -542,6 +544,8 @@ class Fitter:
                 bad = self._non_finite(terms, total)
                 if bad is None:
                     total.backward()
+                    if phase == "coarse" and self.cfg.coarse.freeze_depth and self.model.verts.grad is not None:
+                        self.model.verts.grad[:, 2] = 0  # object z = the canonical camera's depth axis
                     bad = self._non_finite_grad()
                 if bad is not None:
                     self._recover(bad)
@@ -698,6 +702,7 @@ class Fitter:
         m.color_logits = torch.nn.Parameter(color_logits.to(m.bone_centers).contiguous())
         m.faces = faces.to(device=m.bone_centers.device, dtype=torch.int64).contiguous()
         self.edges = mesh_edges(m.faces).to(self.device)
+        self.lap_ref = m.verts.detach().clone()
         old = self.opt
         lrs = {g["name"]: g["lr"] for g in old.param_groups}
         self.opt = self._make_optimizer()
@@ -720,6 +725,7 @@ class Fitter:
             "optimizer": self.opt.state_dict(),
             "generator": self.gen.get_state(),
             "skeleton": self.skel.to_dict(),
+            "lap_ref": self.lap_ref,
             "torch_rng": torch.get_rng_state(),
             "config": to_dict(self.cfg),
         }
@@ -768,6 +774,7 @@ class Fitter:
         from s3o_warp.mstep import SkeletonState
 
         self.skel = SkeletonState.from_dict(st["skeleton"])
+        self.lap_ref = st["lap_ref"].to(self.device)
         self.phase, self.step = st["phase"], st["step"]
         if self.phase in PHASES:
             self.opt = self._make_optimizer()

@@ -5,7 +5,7 @@
                                 [--seeds 0 1 2] [--preset default] [--set key=value ...] [--out-dir DIR]
 
 Cases: ``quadruped`` (the built-in default shot, the README's main command), ``fox`` (Khronos Fox Walk,
-48 frames, 320x240, 90-degree orbit), ``horse`` (Quaternius Horse Walk, 48 frames, 320x240, 120-degree
+48 frames, 320x240, 90-degree orbit, issue 4), ``fox120`` (the same clip with a 120-degree orbit, issue 5), ``horse`` (Quaternius Horse Walk, 48 frames, 320x240, 120-degree
 orbit), ``cows`` / ``dog`` (DAVIS with BADJA keypoints). Cases that need ../shared/data skip with a
 message when it is absent. Each fit's metrics, per-phase wall time (from log.jsonl) and total time
 are recorded with the command, device, versions and git commit. Results are merged into the JSON file
@@ -28,6 +28,7 @@ DATA = Path(os.environ.get("S3O_SHARED_DATA", REPO.parent / "shared" / "data"))
 SYNTH = {
     "quadruped": dict(source="quadruped"),
     "fox": dict(source="gltf/khronos_Fox.glb", clip="Walk", frames=48, fps=30.0, size=(320, 240), azim=(-45.0, 45.0), elev=15.0),
+    "fox120": dict(source="gltf/khronos_Fox.glb", clip="Walk", frames=48, fps=30.0, size=(320, 240), azim=(-60.0, 60.0), elev=15.0),
     "horse": dict(source="gltf/quaternius_Horse.glb", clip="Walk", frames=48, fps=30.0, size=(320, 240), azim=(-60.0, 60.0), elev=15.0),
 }
 DAVIS = {"cows": "cows", "dog": "dog"}

@@ -244,6 +244,25 @@ def test_streamed_frames_give_the_same_fit_as_resident_ones(tiny_sequence, tmp_p
         torch.testing.assert_close(pb[k], pa[k], rtol=0, atol=0, msg=k)
 
 
+@pytest.mark.parametrize("freeze", [True, False])
+def test_coarse_fit_keeps_the_lifted_depth(tiny_sequence, tmp_path, freeze):
+    """One view says nothing about depth: the coarse fit moves vertices in its image plane only (by default)."""
+    cfg = _cfg(**{"coarse.steps": 15, "coarse.freeze_depth": freeze, "motion.warmup_steps": 0, "motion.steps": 0})
+    data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
+    f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
+    v0 = f.model.verts.detach().clone()
+    f.run()
+    v1 = f.model.verts.detach()
+    assert (v1[:, :2] - v0[:, :2]).abs().max() > 1e-3  # the silhouette moved them
+    dz = float((v1[:, 2] - v0[:, 2]).abs().max())
+    assert (dz == 0.0) if freeze else (dz > 1e-3), dz
+    # the relative Laplacian is zero at its reference shape and grows with a bumpy change
+    from s3o_warp.kernels.regularisers import laplacian_loss
+
+    assert float(laplacian_loss(v1 - v1, f.model.faces)) == 0.0
+    assert float(laplacian_loss(torch.randn_like(v1) * 0.01, f.model.faces)) > 0
+
+
 def _joint_fitter(tiny_sequence, tmp_path):
     """A Fitter in its joint phase after 3 steps on frames 0-3 (the bones have some motion)."""
     cfg = _cfg(**{"coarse.steps": 5, "motion.warmup_steps": 5})
