@@ -85,10 +85,10 @@ class MotionConfig:
     """Frames per optimisation step."""
     warmup_steps: int = 200
     """Steps with the mesh frozen (camera and motion only)."""
-    hypotheses: int = 5
+    hypotheses: int = 7
     """Root-rotation hypotheses tried at the start of the warm-up (1 = off): each assumes the camera turns
     about the object's vertical axis at a constant rate; a short fit scores each and the best is kept."""
-    hypothesis_max_rate: float = 2.0
+    hypothesis_max_rate: float = 3.0
     """Largest turn rate of the hypotheses, degrees per frame (rates spread evenly in +-this, 0 included)."""
     hypothesis_steps: int = 30
     """Warm-up steps spent scoring each hypothesis."""
@@ -96,6 +96,11 @@ class MotionConfig:
     """Even resampling of the canonical mesh (paper B) every this many epochs of the joint phase; 0 = never."""
     resample_vertices: int = 0
     """Vertex count the resampled mesh aims at; 0 = the coarse mesh's count."""
+    hypothesis_root_only: bool = True
+    """Score each hypothesis with only the root and camera free (the bones cannot absorb a wrong turn)."""
+    hypothesis_score: str = "flow"
+    """What ranks the hypotheses: total (the whole loss) or flow (the optical-flow term: texture motion
+    tells a turn from a deformation; falls back to total when a sequence has no flow)."""
     turn_rate: float | None = None
     """Known camera turn rate about the object's vertical axis, degrees per frame: used as is, no hypotheses scored."""
     warmup_sweep: float = 0.5
@@ -228,7 +233,7 @@ PRESETS: dict[str, tuple[str, dict]] = {
     "default": ("The defaults: a good fit on the CPU in minutes at 128 px crops.", {"data.crop_size": 128}),
     "fast": (
         "A quick look: 96 px crops, fewer steps.",
-        {"data.crop_size": 96, "coarse.steps": 80, "motion.warmup_steps": 100, "motion.steps": 300, "motion.hypotheses": 3},
+        {"data.crop_size": 96, "coarse.steps": 80, "motion.warmup_steps": 100, "motion.steps": 300},
     ),
     "quality": (
         "Slower and finer: 256 px crops, more vertices and steps.",

@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from s3o_warp import losses as L
 from s3o_warp.config import Config, save_toml, to_dict
-from s3o_warp.errors import InputError
+from s3o_warp.errors import ConfigError, InputError
 from s3o_warp.model import ModelInit, S3OModel
 
 log = logging.getLogger(__name__)
@@ -593,6 +593,8 @@ class Fitter:
         from s3o_warp.geometry import axis_angle_to_matrix
 
         mc, m = self.cfg.motion, self.model
+        if mc.hypothesis_score not in ("total", "flow"):
+            raise ConfigError(f"motion.hypothesis_score must be 'total' or 'flow', got {mc.hypothesis_score!r}")
         base = copy.deepcopy(m.state_dict())
         T, c = m.num_frames, self.coarse.canonical
         rates = np.linspace(-mc.hypothesis_max_rate, mc.hypothesis_max_rate, mc.hypotheses)
@@ -616,6 +618,10 @@ class Fitter:
             apply(float(rate))
             self.gen.set_state(gen_state)
             self.opt = self._make_optimizer()
+            if mc.hypothesis_root_only:
+                self.opt = torch.optim.Adam([
+                    {"params": [m.root_aa, m.root_t], "lr": mc.lr_motion, "name": "motion"},
+                    {"params": [m.log_focal, m.pp], "lr": mc.lr_camera, "name": "camera"}])
             losses = []
             for i in range(mc.hypothesis_steps):
                 frames = self._random_window()
@@ -628,7 +634,8 @@ class Fitter:
                 total.backward()
                 self._step_window(frames)
                 self.step += 1
-                losses.append(float(total.detach()))
+                score = terms["flow"][1] if mc.hypothesis_score == "flow" and "flow" in terms else total
+                losses.append(float(score.detach()))
             self.step = 0
             tail = losses[-max(1, len(losses) // 3):]
             scores.append(float(np.mean(tail)))
