@@ -139,6 +139,7 @@ def main(argv=None) -> int:
                     "fscore": (metrics.get("shape_3d") or {}).get("fscore"),
                     "skeleton": {k: v for k, v in (metrics.get("skeleton") or {}).items() if k != "per_frame"},
                     "bones": len(json.loads((run / "skeleton.json").read_text())["bones"]),
+                    "git_commit": git_commit(),
                 }
                 doc["results"] = [r for r in doc["results"] if not (r["case"] == case and r["method"] == method and r["seed"] == seed
                                                                     and r.get("preset") == args.preset and r.get("overrides") == entry["overrides"])]
