@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Literal
 
 import cv2
@@ -23,6 +23,7 @@ from skimage.morphology import medial_axis, skeletonize
 from tqdm import tqdm
 
 from s3o_warp.errors import ConfigError, InputError
+from s3o_warp.settings import SettingsReplace
 
 log = logging.getLogger(__name__)
 
@@ -34,8 +35,10 @@ _NEIGHBOURS = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1,
 
 
 @dataclass
-class CoarseSettings:
+class CoarseSettings(SettingsReplace):
     """Every setting of the coarse model initialisation (Phase 1), with its default."""
+
+    _section = "coarse"
 
     smooth_sigma: float = 1.0
     """Gaussian blur (pixels) of the mask before thinning, re-thresholded at 0.5; 0 = none (calms jagged masks)."""
@@ -104,16 +107,6 @@ class CoarseSettings:
         if self.skeleton_method not in ("skeletonize", "medial_axis"):
             raise ConfigError(
                 f"coarse.skeleton_method must be 'skeletonize' or 'medial_axis', got {self.skeleton_method!r}")
-
-    def replace(self, **overrides) -> CoarseSettings:
-        """A copy with some fields changed (validated); unknown names raise ConfigError."""
-        known = {f.name for f in fields(self)}
-        for k in overrides:
-            if k not in known:
-                raise ConfigError(f"coarse.{k} is not a setting; known: {', '.join(sorted(known))}")
-        vals = {f.name: getattr(self, f.name) for f in fields(self)}
-        vals.update(overrides)
-        return CoarseSettings(**vals)
 
 
 @dataclass

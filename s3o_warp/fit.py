@@ -266,6 +266,8 @@ class Fitter:
         from s3o_warp.kernels.regularisers import mesh_edges
 
         self.data, self.cfg, self.run_dir, self.device = data, cfg, Path(run_dir), device
+        if cfg.motion.hypothesis_score not in ("total", "flow"):  # refused before any work is done
+            raise ConfigError(f"motion.hypothesis_score must be 'total' or 'flow', got {cfg.motion.hypothesis_score!r}")
         self.coarse = coarse_res
         self.model = S3OModel(coarse_res.init).to(device)
         self.edges = mesh_edges(self.model.faces).to(device)
@@ -593,8 +595,6 @@ class Fitter:
         from s3o_warp.geometry import axis_angle_to_matrix
 
         mc, m = self.cfg.motion, self.model
-        if mc.hypothesis_score not in ("total", "flow"):
-            raise ConfigError(f"motion.hypothesis_score must be 'total' or 'flow', got {mc.hypothesis_score!r}")
         base = copy.deepcopy(m.state_dict())
         T, c = m.num_frames, self.coarse.canonical
         rates = np.linspace(-mc.hypothesis_max_rate, mc.hypothesis_max_rate, mc.hypotheses)
@@ -617,11 +617,10 @@ class Fitter:
         for rate in rates if mc.turn_rate is None else []:
             apply(float(rate))
             self.gen.set_state(gen_state)
-            self.opt = self._make_optimizer()
-            if mc.hypothesis_root_only:
-                self.opt = torch.optim.Adam([
-                    {"params": [m.root_aa, m.root_t], "lr": mc.lr_motion, "name": "motion"},
-                    {"params": [m.log_focal, m.pp], "lr": mc.lr_camera, "name": "camera"}])
+            self.opt = torch.optim.Adam([
+                {"params": [m.root_aa, m.root_t], "lr": mc.lr_motion, "name": "motion"},
+                {"params": [m.log_focal, m.pp], "lr": mc.lr_camera, "name": "camera"}]) if mc.hypothesis_root_only \
+                else self._make_optimizer()
             losses = []
             for i in range(mc.hypothesis_steps):
                 frames = self._random_window()
@@ -639,7 +638,7 @@ class Fitter:
             self.step = 0
             tail = losses[-max(1, len(losses) // 3):]
             scores.append(float(np.mean(tail)))
-        best = float(rates[0] if mc.turn_rate is not None else rates[int(np.argmin(scores))])
+        best = float(rates[int(np.argmin(scores))] if mc.turn_rate is None else rates[0])
         apply(best)
         m.visited.zero_()
         self.gen.set_state(gen_state)

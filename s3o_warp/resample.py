@@ -26,12 +26,13 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from s3o_warp.errors import ConfigError, InputError
+from s3o_warp.settings import SettingsReplace
 
 log = logging.getLogger(__name__)
 
@@ -42,8 +43,10 @@ _MC_VERTS_PER_AREA = 1.5
 
 
 @dataclass
-class ResampleSettings:
+class ResampleSettings(SettingsReplace):
     """Every setting of the even resampling of the canonical mesh (:func:`even_resample`), with its default."""
+
+    _section = "resample"
 
     target_vertices: int | None = None
     """Vertex count the resampled mesh aims at; None = the input's count (each call lands within vertex_tolerance
@@ -134,16 +137,6 @@ class ResampleSettings:
             raise ConfigError(f"resample.max_grid_points must be >= 1000, got {self.max_grid_points}")
         if self.winding_accuracy <= 0:
             raise ConfigError(f"resample.winding_accuracy must be > 0, got {self.winding_accuracy}")
-
-    def replace(self, **overrides) -> ResampleSettings:
-        """A copy with some fields changed (validated); unknown names raise ConfigError."""
-        known = {f.name for f in fields(self)}
-        for k in overrides:
-            if k not in known:
-                raise ConfigError(f"resample.{k} is not a setting; known: {', '.join(sorted(known))}")
-        vals = {f.name: getattr(self, f.name) for f in fields(self)}
-        vals.update(overrides)
-        return ResampleSettings(**vals)
 
 
 # --------------------------------------------------------------------------------------------------
