@@ -75,6 +75,8 @@ class CoarseConfig:
     whose minimum is a flat mesh: with one view nothing else holds the depth."""
     freeze_depth: bool = True
     """Move vertices only in the canonical frame's image plane (x, y): one view says nothing about depth."""
+    large_steps: float = 0.0
+    """Laplacian-preconditioned vertex steps (Nicolet et al. 2021), lambda of I + lambda L; 0 = plain Adam."""
 
 
 @dataclass
@@ -112,6 +114,9 @@ class MotionConfig:
     """Adam learning rate of root and bone rotations/translations."""
     lr_shape: float = 0.002
     """Adam learning rate of the canonical vertices."""
+    large_steps: float = 0.0
+    """Laplacian-preconditioned vertex steps (Nicolet et al. 2021): Adam on u = (I + lambda L) X mapped back
+    by a solve, so updates stay smooth (no spikes); this is lambda, 0 = plain Adam on the vertices."""
     lr_color: float = 0.02
     """Adam learning rate of the vertex-colour logits."""
     lr_bones: float = 0.005
