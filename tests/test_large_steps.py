@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 import trimesh
-
 from s3o_warp.kernels.regularisers import mesh_edges
+
 from s3o_warp.large_steps import Adam, LargeSteps, graph_laplacian, preconditioned_step
 
 
