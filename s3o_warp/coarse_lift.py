@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -42,8 +42,13 @@ class Coarse3D:
         K: (3, 3) float64 intrinsics of the canonical frame (pixels).
         depth: the depth of the body centre along the camera's z axis.
         dz: the symmetric limbs' z offset (object-frame units).
-        edge_dz: (E,) float64 z shift of each edge's ellipsoid at its junction end (0 off the pairs; at most
-            dz and ``junction_dz_fraction`` x the junction's radius, so the limb stays attached).
+        edge_dz: (E,) float64 z shift of each edge's ellipsoid at its junction end (0 off the pairs; dz with
+            girdles, else at most dz and ``junction_dz_fraction`` x the junction's radius, so the limb stays
+            attached).
+        girdle_centres: (G, 3) float64 centres of the girdle ellipsoids (one per symmetric pair with
+            ``girdles``, at the pair's junction node; none otherwise). They shape the mesh only (no bone).
+        girdle_radii: (G, 3) float64 their axis-aligned semi-axes (x, y, z): the junction's radius in x and
+            y, dz + the larger limb radius in z, so both limbs join the body.
     """
 
     nodes: np.ndarray
@@ -60,6 +65,15 @@ class Coarse3D:
     depth: float
     dz: float
     edge_dz: np.ndarray | None = None
+    girdle_centres: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    girdle_radii: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+    def all_ellipsoids(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(centres, rotations, radii) of the edge ellipsoids followed by the girdles (identity rotations)."""
+        G = len(self.girdle_centres)
+        rot = np.broadcast_to(np.eye(3), (G, 3, 3))
+        return (np.concatenate([self.centres, self.girdle_centres]), np.concatenate([self.rotations, rot]),
+                np.concatenate([self.radii, self.girdle_radii]))
 
     def project(self, points: np.ndarray) -> np.ndarray:
         """(M, 3) object-frame points -> (M, 2) float64 pixels (x, y) in the canonical frame."""
@@ -224,10 +238,16 @@ def lift_to_3d(skel: Skeleton2D, K, depth: float, settings: CoarseSettings | Non
     # a leg hanging from the spine at z = 0 would fuse with its partner along the upper half
     # (at most ``junction_dz_fraction`` of the junction's own radius there, so the limb stays attached)
     edge_dz = np.zeros(E)
+    girdle_c, girdle_r = [], []
     for e1, e2 in pairs:
         j = int(np.intersect1d(skel.edges[e1], skel.edges[e2])[0])
-        shift = min(dz, s.junction_dz_fraction * skel.node_radius[j] * depth / f)
+        r_j = skel.node_radius[j] * depth / f
+        shift = dz if s.girdles else min(dz, s.junction_dz_fraction * r_j)
         edge_dz[e1], edge_dz[e2] = -shift, shift
+        if s.girdles:  # hips / shoulders: the two parallel limbs hang from one wide ellipsoid at the junction
+            r_limb = max(skel.edge_radius[e1], skel.edge_radius[e2]) * depth / f
+            girdle_c.append(nodes[j])
+            girdle_r.append((r_j, r_j, dz + r_limb))
     centres = np.empty((E, 3))
     rotations = np.empty((E, 3, 3))
     radii = np.empty((E, 3))
@@ -254,7 +274,9 @@ def lift_to_3d(skel: Skeleton2D, K, depth: float, settings: CoarseSettings | Non
     return Coarse3D(nodes=nodes, edges=skel.edges.copy(), centres=centres, rotations=rotations, radii=radii,
                     sym_pairs=np.array(pairs, np.int64).reshape(-1, 2),
                     symmetry_plane=(np.array([0.0, 0.0, 1.0]), 0.0), root_transform=T, root=int(skel.root),
-                    root_edge=root_edge, K=K, depth=float(depth), dz=float(dz), edge_dz=edge_dz)
+                    root_edge=root_edge, K=K, depth=float(depth), dz=float(dz), edge_dz=edge_dz,
+                    girdle_centres=np.array(girdle_c, np.float64).reshape(-1, 3),
+                    girdle_radii=np.array(girdle_r, np.float64).reshape(-1, 3))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -277,10 +299,12 @@ def ellipsoid_field(coarse: Coarse3D, points: np.ndarray, smooth: float = 0.0) -
         (M,) float64 field values.
     """
     p = np.asarray(points, np.float64)
-    g = np.empty((len(coarse.centres), len(p)))
-    for e in range(len(coarse.centres)):
-        local = (p - coarse.centres[e]) @ coarse.rotations[e] / coarse.radii[e]
-        g[e] = coarse.radii[e, 1:].min() * (1.0 - np.linalg.norm(local, axis=1))
+    centres, rotations, radii = coarse.all_ellipsoids()
+    g = np.empty((len(centres), len(p)))
+    for e in range(len(centres)):
+        local = (p - centres[e]) @ rotations[e] / radii[e]
+        r = radii[e, 1:].min() if e < len(coarse.centres) else radii[e].min()  # edges: the short radius
+        g[e] = r * (1.0 - np.linalg.norm(local, axis=1))
     if smooth <= 0:
         return g.max(axis=0)
     m = g.max(axis=0)
@@ -290,10 +314,11 @@ def ellipsoid_field(coarse: Coarse3D, points: np.ndarray, smooth: float = 0.0) -
 def _march(coarse: Coarse3D, h: float, smooth: float):
     from skimage.measure import marching_cubes
 
-    reach = coarse.radii.max(axis=1, keepdims=True)
-    margin = 2.0 * h + smooth * np.log(max(len(coarse.centres), 1))
-    lo = (coarse.centres - reach).min(axis=0) - margin
-    hi = (coarse.centres + reach).max(axis=0) + margin
+    centres, _, radii = coarse.all_ellipsoids()
+    reach = radii.max(axis=1, keepdims=True)
+    margin = 2.0 * h + smooth * np.log(max(len(centres), 1))
+    lo = (centres - reach).min(axis=0) - margin
+    hi = (centres + reach).max(axis=0) + margin
     n = np.ceil((hi - lo) / h).astype(int) + 1
     axes = [lo[i] + h * np.arange(n[i]) for i in range(3)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
@@ -362,6 +387,16 @@ def ellipsoid_union_mesh(coarse: Coarse3D, target_vertices: int | None = None,
 # bones
 
 
+def edge_ends(coarse: Coarse3D) -> np.ndarray:
+    """``(E, 2, 3)`` the 3D ends of each edge's ellipsoid axis: the edge's nodes, except that a paired
+    limb's end on the symmetry plane (its junction end) is shifted by ``edge_dz`` like the rest of it."""
+    ends = coarse.nodes[coarse.edges].copy()
+    if coarse.edge_dz is not None:
+        on_plane = np.isclose(ends[..., 2], 0.0, rtol=0.0, atol=1e-12)
+        ends[..., 2] += np.where(on_plane, coarse.edge_dz[:, None], 0.0)
+    return ends
+
+
 def init_bones(coarse: Coarse3D, settings: CoarseSettings | None = None) -> Bones:
     """One bone per 3D edge, a kinematic tree rooted at the torso, joints where bones meet.
 
@@ -384,7 +419,8 @@ def init_bones(coarse: Coarse3D, settings: CoarseSettings | None = None) -> Bone
     lam = k / coarse.radii**2  # (E, 3)
     R = coarse.rotations
     precisions = np.einsum("eij,ej,ekj->eik", R, lam, R)
-    lengths = np.linalg.norm(coarse.nodes[coarse.edges[:, 1]] - coarse.nodes[coarse.edges[:, 0]], axis=1)
+    axis_ends = edge_ends(coarse)  # (E, 2, 3): paired limbs' ends off the plane
+    lengths = np.linalg.norm(axis_ends[:, 1] - axis_ends[:, 0], axis=1)
 
     at_node: dict[int, list[int]] = {}
     for e, (u, v) in enumerate(coarse.edges):
@@ -417,10 +453,12 @@ def init_bones(coarse: Coarse3D, settings: CoarseSettings | None = None) -> Bone
         log.warning("init_bones: %d edges unreachable from the root", int((parents == -2).sum()))
         parents[parents == -2] = -1
     joint_nodes = np.array(joint_nodes, np.int64)
+    joints = np.array(joints, np.int64).reshape(-1, 2)
+    # a joint sits at the child's end at the shared node (a paired limb's top is off the plane)
+    side = (coarse.edges[joints[:, 1], 1] == joint_nodes).astype(np.int64)
     return Bones(centres=coarse.centres.copy(), precisions=precisions, lengths=lengths, parents=parents,
-                 joints=np.array(joints, np.int64).reshape(-1, 2),
-                 joint_positions=coarse.nodes[joint_nodes].reshape(-1, 3), joint_nodes=joint_nodes,
+                 joints=joints, joint_positions=axis_ends[joints[:, 1], side].reshape(-1, 3), joint_nodes=joint_nodes,
                  edge_of_bone=np.arange(E, dtype=np.int64))
 
 
-__all__ = ["Bones", "Coarse3D", "ellipsoid_field", "ellipsoid_union_mesh", "init_bones", "lift_to_3d"]
+__all__ = ["Bones", "Coarse3D", "edge_ends", "ellipsoid_field", "ellipsoid_union_mesh", "init_bones", "lift_to_3d"]

@@ -65,7 +65,11 @@ class CoarseSettings(SettingsReplace):
     dz_fraction: float = 0.5
     """Symmetric limbs' end nodes go to z = +-dz_fraction x torso (root) radius, in metres of the object frame."""
     junction_dz_fraction: float = 0.8
-    """A paired limb's junction end goes off the plane by min(dz, this x the junction's 2D radius)."""
+    """Without girdles: a paired limb's junction end goes off the plane by min(dz, this x the junction's 2D radius)."""
+    girdles: bool = False
+    """Paired limbs move off the plane by the full dz, parallel to it, and a 'girdle' ellipsoid at their junction
+    (radii r_junction, r_junction, dz + r_limb) joins them to the body, like hips and shoulders; false = only
+    their junction ends move, by at most junction_dz_fraction x the junction's radius (limbs nearly touch)."""
     end_pad: float = 1.0
     """Ellipsoid long semi-axis = half the 3D edge length + end_pad x its short radius (Hi-LASSIE: 1.0)."""
     target_vertices: int = 2000

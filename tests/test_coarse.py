@@ -293,6 +293,35 @@ def test_lift_ellipsoids_follow_edges(lifted):
             assert q < 1
 
 
+def test_girdles_hold_parallel_limbs_apart_in_one_body(quad):
+    m, sk = quad
+    s = CoarseSettings(girdles=True)
+    c = lift_to_3d(sk, K, 3.0, s)
+    assert len(c.girdle_centres) == len(c.sym_pairs) == 2
+    f = 0.5 * (K[0, 0] + K[1, 1])
+    for (e1, e2), gc, gr in zip(c.sym_pairs, c.girdle_centres, c.girdle_radii):
+        j = int(np.intersect1d(c.edges[e1], c.edges[e2])[0])
+        np.testing.assert_allclose(gc, c.nodes[j])
+        r_j = sk.node_radius[j] * 3.0 / f
+        r_limb = max(sk.edge_radius[e1], sk.edge_radius[e2]) * 3.0 / f
+        np.testing.assert_allclose(gr, [r_j, r_j, c.dz + r_limb])
+        np.testing.assert_allclose(c.edge_dz[[e1, e2]], [-c.dz, c.dz])  # whole limb at +-dz: parallel
+        assert np.allclose(c.centres[[e1, e2], 2], [-c.dz, c.dz])
+    verts, faces = ellipsoid_union_mesh(c, target_vertices=1500, settings=s)
+    tm = trimesh.Trimesh(verts, faces, process=False)
+    assert tm.body_count == 1 and tm.is_watertight
+    # a horizontal slice through the lower legs: the two legs of a pair are separate (a gap at z = 0)
+    y_cut = np.percentile(verts[:, 1], 90)  # y points down: the lowest tenth of the vertices
+    sec = tm.section(plane_origin=[0, y_cut, 0], plane_normal=[0, 1, 0])
+    assert sec is not None
+    loops = sec.discrete
+    assert len(loops) == 4, len(loops)  # four leg cross-sections
+    zs = sorted(float(np.mean(lp[:, 2])) for lp in loops)
+    assert zs[0] < 0 and zs[1] < 0 and zs[2] > 0 and zs[3] > 0
+    # the silhouette from the canonical view is still the mask's shape: girdles sit inside the body
+    assert (_raster(c, verts, faces, m.shape) & ~m).sum() < 0.08 * m.sum()
+
+
 def test_lift_input_errors(quad):
     _, sk = quad
     with pytest.raises(InputError, match="depth"):
@@ -385,10 +414,12 @@ def test_init_bones_tree_rooted_at_torso(quad, lifted):
             x = b.parents[x]
     # joints: one per non-root bone, (parent, child) sharing the node at the joint position
     assert len(b.joints) == B - 1
+    paired = set(c.sym_pairs.ravel().tolist())
     for (p, ch), n, pos in zip(b.joints, b.joint_nodes, b.joint_positions):
         assert b.parents[ch] == p
         assert n in c.edges[p] and n in c.edges[ch]
-        np.testing.assert_array_equal(pos, c.nodes[n])
+        # at the shared node; a paired limb's joint is shifted off the plane with the limb
+        np.testing.assert_allclose(pos, c.nodes[n] + [0.0, 0.0, c.edge_dz[ch] if ch in paired else 0.0], atol=1e-12)
     # the joint node of a child bone is its end nearer the root junction (graph hops)
     hops = {sk.root: 0}
     frontier = [sk.root]
@@ -404,7 +435,8 @@ def test_init_bones_tree_rooted_at_torso(quad, lifted):
     for (p, ch), n in zip(b.joints, b.joint_nodes):
         far = [x for x in c.edges[ch] if x != n][0]
         assert hops[n] < hops[far]
-    np.testing.assert_allclose(b.lengths, np.linalg.norm(c.nodes[c.edges[:, 1]] - c.nodes[c.edges[:, 0]], axis=1))
+    # lengths: the ellipsoid axes (2 x (long semi-axis - end_pad r))
+    np.testing.assert_allclose(b.lengths, 2 * (c.radii[:, 0] - c.radii[:, 1]), atol=1e-12)
     packed_b, packed_j = b.packed()
     assert packed_b.shape == (B, 13) and packed_j.shape == (B - 1, 5)
 
