@@ -8,6 +8,10 @@ number (Barill et al. 2018; ``wp.mesh_query_point_sign_winding_number``, the mes
 on slightly open or self-intersecting meshes. Nothing here is differentiable: it is used for mesh
 resampling (``s3o_warp.resample``), where no gradient flows. The dense twin is
 ``s3o_warp.reference.sdf.closest_point_naive``.
+
+``ray_hit`` casts rays against the same kind of BVH (``wp.mesh_query_ray``): the nearest hit along each
+ray, for centring joints inside the body (``s3o_warp.skeleton.centre_in_body``); its twin is
+``s3o_warp.reference.sdf.ray_hit_naive``.
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ import warp as wp
 
 from ._warp import check_shape, stream_of, to_wp, wp_device
 
-__all__ = ["closest_point"]
+__all__ = ["closest_point", "ray_hit"]
 
 log = logging.getLogger(__name__)
 
@@ -131,3 +135,88 @@ def closest_point(
             wp.synchronize_stream(wp.stream_from_torch(p.device))
     del mesh, v, indices
     return distance.to(out_device), face.to(out_device), bary.to(out_device)
+
+
+@wp.kernel
+def ray_hit_kernel(
+    mesh: wp.uint64,
+    origins: wp.array(dtype=wp.vec3),
+    dirs: wp.array(dtype=wp.vec3),
+    max_t: float,
+    # outputs
+    t_hit: wp.array(dtype=float),
+    face: wp.array(dtype=wp.int64),
+):
+    """Per-ray thread: distance along the (unit) direction to the nearest face, either side."""
+    i = wp.tid()
+    q = wp.mesh_query_ray(mesh, origins[i], dirs[i], max_t)
+    if q.result:
+        t_hit[i] = q.t
+        face[i] = wp.int64(q.face)
+    else:
+        t_hit[i] = max_t
+        face[i] = wp.int64(-1)
+
+
+def ray_hit(
+    verts: torch.Tensor,
+    faces: torch.Tensor,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    max_t: float = _FAR,
+    device: str | torch.device | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Nearest intersection of each ray ``origins[m] + t dirs[m]`` (t >= 0) with a triangle mesh.
+
+    Args:
+        verts: ``(N, 3)`` float vertices; faces: ``(F, 3)`` integer indices.
+        origins: ``(M, 3)`` float ray starts; dirs: ``(M, 3)`` float directions (normalised here).
+        max_t: farthest distance searched.
+        device: where to run (default ``origins.device``); outputs come back there.
+
+    Returns:
+        ``(t, face)``: ``(M,)`` float32 distance to the hit (``max_t`` when the ray misses) and ``(M,)``
+        int64 face hit (-1 on a miss). Faces count from both sides (a ray from inside hits the wall).
+
+    Raises:
+        ValueError: wrong shapes, empty mesh, face indices out of range, a zero direction.
+        TypeError: non-float coordinates or non-integer faces.
+    """
+    name = "ray_hit"
+    check_shape(name, "verts", verts, (None, 3))
+    check_shape(name, "faces", faces, (None, 3))
+    check_shape(name, "origins", origins, (None, 3))
+    check_shape(name, "dirs", dirs, (origins.shape[0], 3))
+    if not (verts.dtype.is_floating_point and origins.dtype.is_floating_point and dirs.dtype.is_floating_point):
+        raise TypeError(f"{name}(): verts, origins and dirs must be float tensors")
+    if faces.dtype.is_floating_point or faces.dtype == torch.bool:
+        raise TypeError(f"{name}(): faces must be an integer tensor, got {faces.dtype}")
+    if verts.shape[0] == 0 or faces.shape[0] == 0:
+        raise ValueError(f"{name}(): the mesh is empty ({verts.shape[0]} vertices, {faces.shape[0]} faces)")
+    out_device = origins.device
+    dev = torch.device(device) if device is not None else origins.device
+    v = verts.detach().to(device=dev, dtype=torch.float32).contiguous()
+    f = faces.detach().to(device=dev, dtype=torch.int32).contiguous()
+    lo, hi = int(f.min()), int(f.max())
+    if lo < 0 or hi >= v.shape[0]:
+        raise ValueError(f"{name}(): faces index vertices {lo}..{hi} but verts has {v.shape[0]}")
+    o = origins.detach().to(device=dev, dtype=torch.float32).contiguous()
+    d = dirs.detach().to(device=dev, dtype=torch.float32)
+    norm = torch.linalg.vector_norm(d, dim=1, keepdim=True)
+    if bool((norm <= 0).any()):
+        raise ValueError(f"{name}(): every direction must be non-zero")
+    d = (d / norm).contiguous()
+    m = o.shape[0]
+    t_hit = torch.empty(m, dtype=torch.float32, device=dev)
+    face = torch.empty(m, dtype=torch.int64, device=dev)
+    if m == 0:
+        return t_hit.to(out_device), face.to(out_device)
+    indices = f.reshape(-1)
+    with stream_of(o):
+        mesh = wp.Mesh(points=to_wp(v, wp.vec3), indices=to_wp(indices))
+        wp.launch(ray_hit_kernel, dim=m, inputs=[mesh.id, to_wp(o, wp.vec3), to_wp(d, wp.vec3), float(max_t)],
+                  outputs=[to_wp(t_hit), to_wp(face)], device=wp_device(o))
+        if o.is_cuda:
+            wp.synchronize_stream(wp.stream_from_torch(o.device))
+    del mesh, v, indices
+    return t_hit.to(out_device), face.to(out_device)

@@ -175,6 +175,9 @@ class SkeletonConfig:
     """Create a joint in a bone whose length varies over frames by more than t_d of its median length."""
     t_r: float = 0.4
     """Joint position: mean of the vertices with both bones' weights >= t_r."""
+    centre_joints: bool = True
+    """Then move each joint to the middle of the body's cross-section there (the mean above sits on the
+    surface when the shared vertices are on one side of a limb); false = the paper's mean as is."""
     growth_factor: float = 2.0
     """Grow an end part whose extent passed growth_factor x its initial extent."""
     growth_sections: int = 2

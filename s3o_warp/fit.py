@@ -292,7 +292,7 @@ class Fitter:
             parents = virtual_bones_init(self.model, cfg)
             self.opt = self._make_optimizer()
         self.skel = SkeletonState(parents=parents)
-        refresh_joints(self.model, self.skel, cfg.skeleton.t_r)
+        refresh_joints(self.model, self.skel, cfg.skeleton.t_r, cfg.skeleton.centre_joints)
 
     # -- NaN/Inf guard ------------------------------------------------------------------------------
     @staticmethod
@@ -586,6 +586,10 @@ class Fitter:
             bar.close()
         self._log({"phase": "eval", "step": 0, "seconds": round(time.perf_counter() - self.t0, 3),
                    "what": "final", "iou_all_frames": self.hard_iou()})
+        if self.phase != "done":  # the shape moved since the last M-step: joints onto the final mesh
+            from s3o_warp.mstep import refresh_joints
+
+            refresh_joints(self.model, self.skel, self.cfg.skeleton.t_r, self.cfg.skeleton.centre_joints)
         self.phase, self.step = "done", 0
         self.save_checkpoint()
 

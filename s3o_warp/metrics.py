@@ -832,6 +832,40 @@ def skeleton_distance(pred_joints: np.ndarray, gt_joints: np.ndarray, diag: np.n
             "per_frame": per_frame.tolist(), "gt_joints": int(J), "pred_joints": int(Jp)}
 
 
+def joints_inside(joints: np.ndarray, verts: np.ndarray, faces: np.ndarray, device: str = "cpu") -> dict:
+    """Does the skeleton sit inside the body? Signed distance of each joint to its frame's posed mesh.
+
+    Args:
+        joints: float (T, J, 3) joint positions per frame; verts: float (T, N, 3) posed vertices of
+            the same frames (same space); faces: int (F, 3).
+        device: where the closest-point kernel runs.
+
+    Returns:
+        ``{"fraction", "per_joint", "max_outside"}``: the fraction of (frame, joint) pairs inside the
+        mesh (winding-number sign), the per-joint fraction over frames, and the largest distance of
+        a joint outside (0 when none is), in the units of ``verts``.
+    """
+    import torch
+
+    from s3o_warp.kernels.sdf import closest_point
+
+    J = np.asarray(joints, np.float64)
+    V = np.asarray(verts, np.float64)
+    if J.ndim != 3 or J.shape[0] != V.shape[0]:
+        raise ValueError(f"joints_inside(): joints {J.shape} and verts {V.shape} must be (T, J, 3) and (T, N, 3)")
+    f = torch.as_tensor(np.asarray(faces, np.int64))
+    inside = np.zeros(J.shape[:2], bool)
+    worst = 0.0
+    for t in range(J.shape[0]):
+        d, _, _ = closest_point(torch.as_tensor(V[t], dtype=torch.float32), f,
+                                torch.as_tensor(J[t], dtype=torch.float32), device=device)
+        d = d.cpu().numpy()
+        inside[t] = d < 0
+        worst = max(worst, float(d.max(initial=0.0)))
+    return {"fraction": float(inside.mean()) if inside.size else float("nan"),
+            "per_joint": inside.mean(0).tolist(), "max_outside": worst}
+
+
 def gt_limbs(parents: np.ndarray, names: list[str] | None = None) -> list[dict]:
     """The limbs of a joint tree: from each leaf up to (and including) the nearest branching ancestor.
 
@@ -1025,6 +1059,12 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
     if "pck_t" not in result and "pck_t" not in skipped:
         skipped["pck_t"] = "no keypoints.json"
 
+    # ---- the skeleton inside the body (no ground truth needed) ----
+    if pred.joints_cam is not None and pred.joints_cam.shape[1] > 0:
+        result["joints_inside"] = joints_inside(pred.joints_cam, pred.verts_cam, pred.faces)
+    else:
+        skipped["joints_inside"] = f"{pred.source} has no joints_cam"
+
     # ---- 3D shape and skeleton against synthetic ground truth ----
     if ground_truth is not None:
         gt = load_ground_truth(ground_truth)
@@ -1072,6 +1112,10 @@ def format_table(metrics: dict) -> str:
         m = metrics["pck_t"]
         rows.append((f"PCK-T@{m['alpha']:g} (%)", f(m["pck"], ".2f"),
                      f"{m['correct']}/{m['total']} keypoints, {m['pairs']} pairs of {m['frames']} frames"))
+    if "joints_inside" in metrics:
+        m = metrics["joints_inside"]
+        rows.append(("joints inside the body", f(m["fraction"], ".3f"),
+                     f"fraction of (frame, joint) pairs; farthest outside {f(m['max_outside'], '.4g')}"))
     if "shape_3d" in metrics:
         m = metrics["shape_3d"]
         rows.append(("Chamfer / bbox diag", f(m["chamfer"], ".5f"),

@@ -238,6 +238,61 @@ def joint_positions(verts, weights, pairs, t_r: float = 0.4, fallback_count: int
     return np.einsum("jn,...nc->...jc", Ssel, X)
 
 
+def centre_in_body(points, verts, faces, iterations: int = 2, inset: float = 1e-3) -> np.ndarray:
+    """Move points (joints) to the middle of the body's local cross-section: the skeleton inside the body.
+
+    The mean of the vertices two bones share lies on the surface wherever those vertices are on one
+    side of a limb. Each iteration takes the nearest surface point c at distance a and casts one ray
+    from the point away from c to the opposite wall at distance b, then moves the point to the middle
+    of that chord (by (a - b) / 2 towards c). A point outside, or within ``inset`` of the surface,
+    first moves ``inset`` inside c along the surface normal there (the area-weighted vertex normals
+    interpolated over c's face, which also points sensibly at a vertex or an edge). For a tube the
+    nearest-point direction is radial, so one pass puts a point on the axis; the second settles it.
+
+    Args:
+        points: ``(J, 3)`` positions in the mesh's frame.
+        verts: ``(N, 3)``; faces: ``(F, 3)`` a closed, consistently wound mesh.
+        iterations: passes.
+        inset: how far inside the surface a point on it is put first, as a fraction of the mesh's
+            bounding-box diagonal.
+
+    Returns:
+        ``(J, 3)`` float64 positions (a point whose ray finds no opposite wall stays where it is).
+    """
+    from s3o_warp.kernels.sdf import closest_point, ray_hit
+
+    P = _np(points).reshape(-1, 3).copy()
+    if len(P) == 0:
+        return P
+    X = _np(verts)
+    Fi = _np(faces, np.int64)
+    V = torch.as_tensor(X)
+    F = torch.as_tensor(Fi)
+    tri = X[Fi]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # area-weighted face normals
+    vn = np.zeros_like(X)
+    for k in range(3):
+        np.add.at(vn, Fi[:, k], fn)
+    vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-30)
+    eps = inset * float(np.linalg.norm(X.max(0) - X.min(0)))
+    for _ in range(max(0, iterations)):
+        d, f, b = closest_point(V, F, torch.as_tensor(P))
+        d, f, b = d.double().numpy(), f.numpy(), b.double().numpy()
+        c = np.einsum("jk,jkc->jc", b, tri[f])
+        n = np.einsum("jk,jkc->jc", b, vn[Fi[f]])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+        near = d > -eps  # outside, or on the surface: start just inside c
+        to_c = c - P
+        dist = np.linalg.norm(to_c, axis=1)
+        u = np.where(near[:, None], n, to_c / np.maximum(dist, 1e-30)[:, None])
+        start = np.where(near[:, None], c - eps * n, P)
+        a = np.where(near, eps, dist)
+        t, hit = ray_hit(V, F, torch.as_tensor(start), torch.as_tensor(-u), max_t=1e6)
+        t, ok = t.double().numpy(), hit.numpy() >= 0
+        P = np.where(ok[:, None], start + u * (0.5 * (a - t))[:, None], P)
+    return P
+
+
 def bone_endpoints(verts, weights, pairs, t_r: float = 0.4, far_fraction: float = 0.1,
                    fallback_count: int = 4) -> np.ndarray:
     """``(B, 2, N)`` endpoint selection: bone b's two ends are ``E[b, 0] @ X`` and ``E[b, 1] @ X``.
@@ -529,6 +584,7 @@ __all__ = [
     "create_joints",
     "grow_skeleton",
     "joint_positions",
+    "centre_in_body",
     "joint_selection",
     "kinematic_tree",
     "merge_bones",

@@ -423,6 +423,29 @@ def test_gltf_four_influences_within_reported_error(tmp_path):
     assert report.camera_px_error < 1e-6  # constant, square, centred intrinsics are exact in glTF
 
 
+def test_joints_move_like_the_surface_at_their_rest_position():
+    import dataclasses
+
+    import torch
+
+    from s3o_warp.reference.skinning import blend_skinning_reference, skinning_weights_reference
+
+    rig = chain_rig()
+    t = lambda a: torch.as_tensor(np.asarray(a, np.float64))  # noqa: E731
+    w = skinning_weights_reference(t(rig.joints), t(rig.centres), t(rig.precisions))
+    ref = blend_skinning_reference(t(rig.joints), w, t(rig.bone_motion[:, :, :3]), t(rig.root[:, :3]))
+    np.testing.assert_allclose(rig.joints_camera(), ref.numpy(), atol=1e-9)
+    # without the Gaussians: the equal blend of the joint's two bones
+    bare = dataclasses.replace(rig, centres=None, precisions=None)
+    w2 = torch.zeros(len(rig.joints), rig.num_bones, dtype=torch.float64)
+    for j, (a, b) in enumerate(rig.joint_pairs):
+        w2[j, a] += 0.5
+        w2[j, b] += 0.5
+    ref2 = blend_skinning_reference(t(rig.joints), w2, t(rig.bone_motion[:, :, :3]), t(rig.root[:, :3]))
+    np.testing.assert_allclose(bare.joints_camera(), ref2.numpy(), atol=1e-9)
+    assert np.abs(ref2.numpy() - ref.numpy()).max() > 1e-3  # the two rules differ on this rig
+
+
 # ----------------------------------------------------------------------------- run directory
 def test_save_load_round_trip(tmp_path):
     rig = chain_rig()

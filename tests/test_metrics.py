@@ -528,6 +528,23 @@ def test_badja_keypoints_fall_inside_davis_masks(shared_data, animal, tmp_path):
     assert (dist <= 5).mean() > 0.99
 
 
+def test_joints_inside_a_moving_box():
+    import trimesh
+
+    box = trimesh.creation.box(extents=(2.0, 1.0, 1.0))
+    V0 = np.asarray(box.vertices)
+    shift = np.array([[0.0, 0.0, 0.0], [0.5, 0.0, 3.0]])  # two frames, the box moves
+    verts = V0[None] + shift[:, None]
+    # joint 0 inside in both frames; joint 1 inside at frame 0, 0.25 outside (along y) at frame 1
+    joints = np.array([[[0.2, 0.1, 0.0], [0.0, 0.3, 0.0]], [[0.7, 0.1, 3.0], [0.5, 0.75, 3.0]]])
+    r = M.joints_inside(joints, verts, box.faces)
+    assert r["fraction"] == pytest.approx(3 / 4)
+    assert r["per_joint"] == pytest.approx([1.0, 0.5])
+    assert r["max_outside"] == pytest.approx(0.25, abs=1e-5)
+    with pytest.raises(ValueError, match="joints_inside"):
+        M.joints_inside(joints[:1], verts, box.faces)
+
+
 def test_limb_coverage_on_a_hand_made_tree():
     from s3o_warp.metrics import gt_limbs, limb_coverage
 

@@ -282,3 +282,50 @@ def test_resample_settings_validation():
     with pytest.raises(ConfigError, match="resample.bogus is not a setting"):
         ResampleSettings().replace(bogus=1)
     assert ResampleSettings().replace(trials=2).trials == 2
+
+
+# --------------------------------------------------------------------------------------------------
+# ray_hit
+
+
+def test_ray_hit_matches_naive(device):
+    from s3o_warp.kernels.sdf import ray_hit
+    from s3o_warp.reference.sdf import ray_hit_naive
+
+    verts, faces = _rotated_sphere(2, seed=4)
+    gen = torch.Generator().manual_seed(5)
+    origins = (torch.rand(300, 3, generator=gen) * 2 - 1) * 1.1  # inside and outside
+    dirs = torch.randn(300, 3, generator=gen)
+    ref_t, ref_f = ray_hit_naive(verts.double(), faces, origins.double(), dirs.double(), max_t=50.0)
+    assert (ref_f >= 0).sum() > 100 and (ref_f < 0).sum() > 10  # hits and misses
+    t, f = ray_hit(verts.to(device), faces.to(device), origins.to(device), dirs.to(device), max_t=50.0)
+    t, f = t.cpu(), f.cpu()
+    assert t.dtype == torch.float32 and f.dtype == torch.int64
+    assert torch.equal(f < 0, ref_f < 0)
+    torch.testing.assert_close(t.double(), ref_t, atol=2e-5, rtol=0)
+    hit = ref_f >= 0
+    # the face: the naive one, or one at the same distance (a ray through an edge)
+    assert (f[hit] == ref_f[hit]).float().mean() > 0.97
+    with pytest.raises(ValueError, match="non-zero"):
+        ray_hit(verts, faces, origins[:2], torch.zeros(2, 3))
+    with pytest.raises(ValueError, match=r"dirs must have shape"):
+        ray_hit(verts, faces, origins[:2], dirs[:3])
+
+
+def test_centre_in_body_puts_joints_on_a_tube_axis():
+    from s3o_warp.skeleton import centre_in_body
+
+    tube = trimesh.creation.cylinder(radius=0.1, height=1.0, sections=48)  # axis z
+    v, f = trimesh.remesh.subdivide_to_size(tube.vertices, tube.faces, max_edge=0.05)  # rings along the side
+    tube = trimesh.Trimesh(v, f)
+    pts = np.array([[0.0, 0.099, 0.1],  # inside, at the wall
+                    [0.14, 0.0, -0.2],  # outside, 0.04 off the wall
+                    [0.03, -0.05, 0.3],  # inside, off axis
+                    [0.0, 0.0, 0.0]])  # on the axis already
+    out = centre_in_body(pts, tube.vertices, tube.faces)
+    np.testing.assert_allclose(out[:, :2], 0.0, atol=3e-3)  # on the axis (48-gon: radius within 0.3%)
+    np.testing.assert_allclose(out[:, 2], pts[:, 2], atol=1e-6)  # along it, where they were
+    # a box: a point near one face goes to the middle between that face and the opposite one
+    box = trimesh.creation.box(extents=(2.0, 0.4, 1.0))
+    out = centre_in_body(np.array([[0.5, 0.19, 0.1]]), box.vertices, box.faces)
+    np.testing.assert_allclose(out, [[0.5, 0.0, 0.1]], atol=1e-5)

@@ -291,15 +291,27 @@ class Rig:
     def joints_camera(self) -> np.ndarray | None:
         """(T, J, 3) float64 posed joints in the OpenCV camera frame, or None without joints.
 
-        A joint moves with the equal blend of its two bones: 0.5 (A_a(t) + A_b(t)) X_j.
+        A joint moves like a surface point at its rest position: linear blend skinning with the weights
+        of the Gaussian bones there, ``softmax_b(-1/2 (X_j - C_b)^T Q_b (X_j - C_b))`` (the mesh's own
+        weights), so a joint inside the body stays inside it. Without the Gaussians (``centres`` /
+        ``precisions``), the equal blend of its two bones: 0.5 (A_a(t) + A_b(t)) X_j.
         """
         if self.joints is None:
             return None
-        out = np.empty((self.num_frames, len(self.joints), 3))
-        x = np.concatenate([self.joints, np.ones((len(self.joints), 1))], 1)
+        J = len(self.joints)
+        if self.centres is not None and self.precisions is not None:
+            d = self.joints[:, None, :] - self.centres[None]  # (J, B, 3)
+            logits = -0.5 * np.einsum("jbi,bik,jbk->jb", d, self.precisions, d)
+            w = np.exp(logits - logits.max(1, keepdims=True))
+            w /= w.sum(1, keepdims=True)
+        else:
+            w = np.zeros((J, self.num_bones))
+            w[np.arange(J), self.joint_pairs[:, 0]] += 0.5
+            w[np.arange(J), self.joint_pairs[:, 1]] += 0.5
+        out = np.empty((self.num_frames, J, 3))
+        x = np.concatenate([self.joints, np.ones((J, 1))], 1)
         for t in range(self.num_frames):
-            a = self.bone_motion[t]
-            m = 0.5 * (a[self.joint_pairs[:, 0]] + a[self.joint_pairs[:, 1]])
+            m = np.einsum("jb,bik->jik", w, self.bone_motion[t])
             xo = np.einsum("jik,jk->ji", m, x)
             out[t] = (xo @ self.root[t].T)[:, :3]
         return out

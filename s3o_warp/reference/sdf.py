@@ -9,7 +9,7 @@ import math
 
 import torch
 
-__all__ = ["closest_on_faces_naive", "closest_point_naive", "winding_number_naive"]
+__all__ = ["closest_on_faces_naive", "closest_point_naive", "ray_hit_naive", "winding_number_naive"]
 
 
 def winding_number_naive(verts: torch.Tensor, faces: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
@@ -86,3 +86,30 @@ def closest_point_naive(
     if not dist:
         return verts.new_zeros(0), torch.zeros(0, dtype=torch.int64, device=verts.device), verts.new_zeros(0, 3)
     return torch.cat(dist), torch.cat(face), torch.cat(bary)
+
+
+def ray_hit_naive(verts: torch.Tensor, faces: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor,
+                  max_t: float = 1.0e18) -> tuple[torch.Tensor, torch.Tensor]:
+    """Brute-force twin of ``kernels.sdf.ray_hit``: Moller-Trumbore against every face, nearest t >= 0.
+
+    Returns ``(t (M,), face (M,) int64)`` in verts' dtype; ``max_t`` and -1 on a miss.
+    """
+    d = dirs.to(verts.dtype)
+    d = d / torch.linalg.vector_norm(d, dim=1, keepdim=True)
+    o = origins.to(verts.dtype)
+    tri = verts[faces.long()]  # (F, 3, 3)
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]  # (F, 3)
+    pvec = torch.linalg.cross(d[:, None, :].expand(-1, len(tri), -1), e2[None].expand(len(d), -1, -1))  # (M, F, 3)
+    det = (e1[None] * pvec).sum(-1)
+    ok = det.abs() > 1e-12
+    inv = 1.0 / torch.where(ok, det, torch.ones_like(det))
+    s = o[:, None, :] - tri[None, :, 0]
+    u = (s * pvec).sum(-1) * inv
+    q = torch.linalg.cross(s, e1[None].expand_as(s))
+    v = (d[:, None, :] * q).sum(-1) * inv
+    t = (e2[None] * q).sum(-1) * inv
+    hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0) & (t <= max_t)
+    t = torch.where(hit, t, torch.full_like(t, math.inf))
+    best, face = t.min(dim=1)
+    missed = ~torch.isfinite(best)
+    return torch.where(missed, torch.full_like(best, max_t), best), torch.where(missed, -1, face)
