@@ -62,6 +62,24 @@ def closest_point_kernel(
         bary[i] = wp.vec3(0.0, 0.0, 0.0)
 
 
+def _mesh_on(name: str, verts: torch.Tensor, faces: torch.Tensor, dev: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """Checked float32 vertices and int32 faces of a query mesh on ``dev`` (shared input rules of the ops)."""
+    check_shape(name, "verts", verts, (None, 3))
+    check_shape(name, "faces", faces, (None, 3))
+    if not verts.dtype.is_floating_point:
+        raise TypeError(f"{name}(): verts must be a float tensor, got {verts.dtype}")
+    if faces.dtype.is_floating_point or faces.dtype == torch.bool:
+        raise TypeError(f"{name}(): faces must be an integer tensor, got {faces.dtype}")
+    if verts.shape[0] == 0 or faces.shape[0] == 0:
+        raise ValueError(f"{name}(): the mesh is empty ({verts.shape[0]} vertices, {faces.shape[0]} faces)")
+    v = verts.detach().to(device=dev, dtype=torch.float32).contiguous()
+    f = faces.detach().to(device=dev, dtype=torch.int32).contiguous()
+    lo, hi = int(f.min()), int(f.max())
+    if lo < 0 or hi >= v.shape[0]:
+        raise ValueError(f"{name}(): faces index vertices {lo}..{hi} but verts has {v.shape[0]}")
+    return v, f
+
+
 def closest_point(
     verts: torch.Tensor,
     faces: torch.Tensor,
@@ -98,22 +116,12 @@ def closest_point(
         TypeError: non-float verts/points or non-integer faces.
     """
     name = "closest_point"
-    check_shape(name, "verts", verts, (None, 3))
-    check_shape(name, "faces", faces, (None, 3))
     check_shape(name, "points", points, (None, 3))
-    if not verts.dtype.is_floating_point or not points.dtype.is_floating_point:
-        raise TypeError(f"{name}(): verts and points must be float tensors, got {verts.dtype} and {points.dtype}")
-    if faces.dtype.is_floating_point or faces.dtype == torch.bool:
-        raise TypeError(f"{name}(): faces must be an integer tensor, got {faces.dtype}")
-    if verts.shape[0] == 0 or faces.shape[0] == 0:
-        raise ValueError(f"{name}(): the mesh is empty ({verts.shape[0]} vertices, {faces.shape[0]} faces)")
+    if not points.dtype.is_floating_point:
+        raise TypeError(f"{name}(): points must be a float tensor, got {points.dtype}")
     out_device = points.device
     dev = torch.device(device) if device is not None else points.device
-    v = verts.detach().to(device=dev, dtype=torch.float32).contiguous()
-    f = faces.detach().to(device=dev, dtype=torch.int32).contiguous()
-    lo, hi = int(f.min()), int(f.max())
-    if lo < 0 or hi >= v.shape[0]:
-        raise ValueError(f"{name}(): faces index vertices {lo}..{hi} but verts has {v.shape[0]}")
+    v, f = _mesh_on(name, verts, faces, dev)
     p = points.detach().to(device=dev, dtype=torch.float32).contiguous()
     m = p.shape[0]
     distance = torch.empty(m, dtype=torch.float32, device=dev)
@@ -183,23 +191,13 @@ def ray_hit(
         TypeError: non-float coordinates or non-integer faces.
     """
     name = "ray_hit"
-    check_shape(name, "verts", verts, (None, 3))
-    check_shape(name, "faces", faces, (None, 3))
     check_shape(name, "origins", origins, (None, 3))
     check_shape(name, "dirs", dirs, (origins.shape[0], 3))
-    if not (verts.dtype.is_floating_point and origins.dtype.is_floating_point and dirs.dtype.is_floating_point):
-        raise TypeError(f"{name}(): verts, origins and dirs must be float tensors")
-    if faces.dtype.is_floating_point or faces.dtype == torch.bool:
-        raise TypeError(f"{name}(): faces must be an integer tensor, got {faces.dtype}")
-    if verts.shape[0] == 0 or faces.shape[0] == 0:
-        raise ValueError(f"{name}(): the mesh is empty ({verts.shape[0]} vertices, {faces.shape[0]} faces)")
+    if not (origins.dtype.is_floating_point and dirs.dtype.is_floating_point):
+        raise TypeError(f"{name}(): origins and dirs must be float tensors")
     out_device = origins.device
     dev = torch.device(device) if device is not None else origins.device
-    v = verts.detach().to(device=dev, dtype=torch.float32).contiguous()
-    f = faces.detach().to(device=dev, dtype=torch.int32).contiguous()
-    lo, hi = int(f.min()), int(f.max())
-    if lo < 0 or hi >= v.shape[0]:
-        raise ValueError(f"{name}(): faces index vertices {lo}..{hi} but verts has {v.shape[0]}")
+    v, f = _mesh_on(name, verts, faces, dev)
     o = origins.detach().to(device=dev, dtype=torch.float32).contiguous()
     d = dirs.detach().to(device=dev, dtype=torch.float32)
     norm = torch.linalg.vector_norm(d, dim=1, keepdim=True)
