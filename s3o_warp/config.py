@@ -108,6 +108,10 @@ class MotionConfig:
     warmup_sweep: float = 0.5
     """Fraction of the warm-up that sweeps windows outward from the canonical frame, each new frame starting
     from its nearest already-fitted neighbour's pose (0 = random windows only)."""
+    sweep_extrapolate: float = 0.0
+    """A new frame of the sweep starts from that pose plus this x the neighbour's velocity (its pose minus
+    the next fitted frame's inward) per frame of distance: 1 = constant velocity, so a swinging leg carries
+    on through a crossing instead of bouncing back; 0 = the neighbour's pose as is."""
     steps: int = 1200
     """Steps of the joint shape + motion + camera phase after the warm-up."""
     lr_motion: float = 0.01
@@ -147,6 +151,9 @@ class MotionConfig:
     """Weight of the symmetry loss on the canonical mesh."""
     w_smooth: float = 0.1
     """Weight of the temporal smoothness of root and bone motion between consecutive frames."""
+    smooth_order: int = 1
+    """Temporal smoothness on first differences (1: velocity, favours standing still) or second differences
+    (2: acceleration, favours carrying on at constant speed)."""
     w_bone_reg: float = 0.01
     """Weight of the penalty on bone translation magnitude (keeps bones rotating about their centres)."""
     log_every: int = 10

@@ -269,6 +269,8 @@ class Fitter:
         self.data, self.cfg, self.run_dir, self.device = data, cfg, Path(run_dir), device
         if cfg.motion.hypothesis_score not in ("total", "flow"):  # refused before any work is done
             raise ConfigError(f"motion.hypothesis_score must be 'total' or 'flow', got {cfg.motion.hypothesis_score!r}")
+        if cfg.motion.smooth_order not in (1, 2):
+            raise ConfigError(f"motion.smooth_order must be 1 or 2, got {cfg.motion.smooth_order}")
         self.coarse = coarse_res
         self.model = S3OModel(coarse_res.init).to(device)
         self.edges = mesh_edges(self.model.faces).to(device)
@@ -439,18 +441,26 @@ class Fitter:
 
     @torch.no_grad()
     def _seed_unvisited(self, frames: torch.Tensor) -> None:
-        """Frames entering the sweep for the first time start from the nearest visited frame's pose."""
+        """Frames entering the sweep for the first time start from the nearest visited frame's pose, plus
+        ``motion.sweep_extrapolate`` x its velocity per frame of distance (when the frame inward of it was
+        visited too): pose(f) = pose(s) + a (f - s) (pose(s) - pose(s -+ 1))."""
         m = self.model
+        a = self.cfg.motion.sweep_extrapolate
         visited = m.visited
         if not bool(visited.any()):
             visited[self.coarse.canonical] = True
         idx = torch.nonzero(visited).flatten()
+        T = m.num_frames
         for f in frames.tolist():
             if visited[f]:
                 continue
             src = int(idx[(idx - f).abs().argmin()])
+            inward = src - 1 if f > src else src + 1
+            k = abs(f - src)
             for p in (m.root_aa, m.root_t, m.bone_aa, m.bone_t):
                 p.data[f] = p.data[src]
+                if a > 0 and 0 <= inward < T and bool(visited[inward]):
+                    p.data[f] += a * k * (p.data[src] - p.data[inward])
         visited[frames] = True
 
     def motion_losses(self, frames: torch.Tensor) -> dict:
@@ -486,11 +496,12 @@ class Fitter:
         if self.phase == "joint":
             terms["lap"] = (mc.w_lap, laplacian_loss(m.verts - self.lap_ref if mc.lap_relative else m.verts, m.faces))
             terms["sym"] = (mc.w_sym, symmetry_loss(m.verts, self.sym_plane))
+        k = mc.smooth_order
         smooth = (
-            L.temporal_smoothness(m.root_aa)
-            + L.temporal_smoothness(m.root_t)
-            + L.temporal_smoothness(m.bone_aa)
-            + L.temporal_smoothness(m.bone_t)
+            L.temporal_smoothness(m.root_aa, k)
+            + L.temporal_smoothness(m.root_t, k)
+            + L.temporal_smoothness(m.bone_aa, k)
+            + L.temporal_smoothness(m.bone_t, k)
         )
         terms["smooth"] = (mc.w_smooth, smooth)
         terms["bone_reg"] = (mc.w_bone_reg, (m.bone_t[frames] ** 2).mean())

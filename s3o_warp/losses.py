@@ -55,8 +55,14 @@ def color_loss(rendered: torch.Tensor, image: torch.Tensor, valid: torch.Tensor)
     return (err * valid).sum() / valid.sum().clamp_min(1.0) / 3.0
 
 
-def temporal_smoothness(x: torch.Tensor) -> torch.Tensor:
-    """Mean squared difference between consecutive frames of a per-frame parameter ``(T, ...)``."""
-    if x.shape[0] < 2:
+def temporal_smoothness(x: torch.Tensor, order: int = 1) -> torch.Tensor:
+    """Mean squared ``order``-th difference over frames of a per-frame parameter ``(T, ...)``: 1 penalises
+    velocity (consecutive frames differing), 2 acceleration (``x[t+1] - 2 x[t] + x[t-1]``)."""
+    if order not in (1, 2):
+        raise ValueError(f"temporal_smoothness(): order must be 1 or 2, got {order}")
+    if x.shape[0] < order + 1:
         return x.sum() * 0
-    return ((x[1:] - x[:-1]) ** 2).mean()
+    d = x[1:] - x[:-1]
+    if order == 2:
+        d = d[1:] - d[:-1]
+    return (d**2).mean()

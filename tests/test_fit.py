@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from s3o_warp.config import make_config
-from s3o_warp.errors import InputError
+from s3o_warp.errors import ConfigError, InputError
 from s3o_warp.fit import Fitter, FitInterrupted, coarse_model, fit, latest_checkpoint, prepare_data, resolve_device
 
 
@@ -234,6 +234,45 @@ def test_camera_hypotheses_score_each_rate_and_keep_the_best(tiny_sequence, tmp_
     aa = torch.zeros(1, 3)
     aa[0, 1] = np.deg2rad(rec["chosen"] * (T - 1))
     torch.testing.assert_close(rel, axis_angle_to_matrix(aa)[0], atol=1e-5, rtol=0)
+
+
+def test_temporal_smoothness_orders():
+    from s3o_warp import losses as L
+
+    t = torch.arange(6, dtype=torch.float64)
+    line = torch.stack([2 * t, -t], 1)  # constant velocity
+    assert float(L.temporal_smoothness(line, 1)) == pytest.approx((4 + 1) / 2)
+    assert float(L.temporal_smoothness(line, 2)) == 0.0  # no acceleration
+    par = t**2
+    assert float(L.temporal_smoothness(par, 2)) == pytest.approx(4.0)  # second difference 2 everywhere
+    assert float(L.temporal_smoothness(par[:2], 2)) == 0.0
+    with pytest.raises(ValueError, match="order"):
+        L.temporal_smoothness(par, 3)
+
+
+@pytest.mark.parametrize("a", [0.0, 1.0])
+def test_sweep_seeds_new_frames_at_constant_velocity(tiny_sequence, tmp_path, a):
+    cfg = _cfg(**{"coarse.steps": 2, "motion.sweep_extrapolate": a})
+    data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
+    f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
+    m = f.model
+    m.visited.zero_()
+    m.visited[[2, 3]] = True
+    g = torch.Generator().manual_seed(0)
+    params = (m.root_aa, m.root_t, m.bone_aa, m.bone_t)
+    with torch.no_grad():
+        for p in params:
+            p.data[2] = torch.randn(p.shape[1:], generator=g)
+            p.data[3] = torch.randn(p.shape[1:], generator=g)
+    f._seed_unvisited(torch.arange(2, 7))  # 4, 5, 6 are new, 3 their nearest visited frame, 2 inward of it
+    for p in params:
+        v = p.data[3] - p.data[2]
+        for k, fr in enumerate((4, 5, 6), 1):
+            torch.testing.assert_close(p.data[fr], p.data[3] + a * k * v)
+    assert m.visited[2:7].all()
+    with pytest.raises(ConfigError, match="smooth_order"):
+        Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["motion.smooth_order=3"]), tmp_path,
+               torch.device("cpu"))
 
 
 def test_known_turn_rate_skips_the_scoring(tiny_sequence, tmp_path):
