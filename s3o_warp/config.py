@@ -183,8 +183,11 @@ class SkeletonConfig:
     t_r: float = 0.4
     """Joint position: mean of the vertices with both bones' weights >= t_r."""
     centre_joints: bool = True
-    """Then move each joint to the middle of the body's cross-section there (the mean above sits on the
-    surface when the shared vertices are on one side of a limb); false = the paper's mean as is."""
+    """Then move each joint into the body: to the middle of a thin limb's cross-section, at most joint_depth
+    below the surface of a thick part (the mean above sits on the surface when the shared vertices are on
+    one side of a limb); false = the paper's mean as is."""
+    joint_depth: float = 0.03
+    """Deepest a joint is moved below the surface, as a fraction of the canonical mesh's bbox diagonal."""
     growth_factor: float = 2.0
     """Grow an end part whose extent passed growth_factor x its initial extent."""
     growth_sections: int = 2

@@ -294,7 +294,7 @@ class Fitter:
             parents = virtual_bones_init(self.model, cfg)
             self.opt = self._make_optimizer()
         self.skel = SkeletonState(parents=parents)
-        refresh_joints(self.model, self.skel, cfg.skeleton.t_r, cfg.skeleton.centre_joints)
+        refresh_joints(self.model, self.skel, cfg.skeleton)
 
     # -- NaN/Inf guard ------------------------------------------------------------------------------
     @staticmethod
@@ -600,7 +600,7 @@ class Fitter:
         if self.phase != "done":  # the shape moved since the last M-step: joints onto the final mesh
             from s3o_warp.mstep import refresh_joints
 
-            refresh_joints(self.model, self.skel, self.cfg.skeleton.t_r, self.cfg.skeleton.centre_joints)
+            refresh_joints(self.model, self.skel, self.cfg.skeleton)
         self.phase, self.step = "done", 0
         self.save_checkpoint()
 

@@ -66,21 +66,22 @@ def _q(model) -> np.ndarray:
     return model.precisions().detach().cpu().double().numpy()
 
 
-def refresh_joints(model, state: SkeletonState, t_r: float, centre: bool = True) -> None:
-    """Joints = the kinematic tree's (parent, child) pairs, placed at the mean of the shared vertices,
-    then (``centre``) moved to the middle of the body's cross-section there."""
+def refresh_joints(model, state: SkeletonState, sc) -> None:
+    """Joints = the kinematic tree's (parent, child) pairs, placed at the mean of the shared vertices
+    (``sc.t_r``), then (``sc.centre_joints``) moved into the body (:func:`s3o_warp.skeleton.centre_in_body`).
+    ``sc`` is the run's ``SkeletonConfig``."""
     X, W = _xw(model)
     state.joints = sk.tree_joints(state.parents)
     if not len(state.joints):
         state.joint_positions = np.zeros((0, 3))
         return
-    J = sk.joint_positions(X, W, state.joints, t_r=t_r)
-    if centre:
-        J = sk.centre_in_body(J, X, model.faces.detach().cpu().numpy())
+    J = sk.joint_positions(X, W, state.joints, t_r=sc.t_r)
+    if sc.centre_joints:
+        J = sk.centre_in_body(J, X, model.faces.detach().cpu().numpy(), max_depth=sc.joint_depth)
     state.joint_positions = J
 
 
-def _apply(model, opt, state: SkeletonState, edit, what: str, epoch: int, t_r: float, centre: bool = True) -> bool:
+def _apply(model, opt, state: SkeletonState, edit, what: str, epoch: int, sc) -> bool:
     if not edit.changed:
         return False
     b0 = model.num_bones
@@ -88,7 +89,7 @@ def _apply(model, opt, state: SkeletonState, edit, what: str, epoch: int, t_r: f
     state.parents = np.asarray(edit.parents, np.int64)
     if edit.extents is not None:
         state.extents = np.asarray(edit.extents, np.float64)
-    refresh_joints(model, state, t_r, centre)
+    refresh_joints(model, state, sc)
     state.history.append({"epoch": epoch, "operation": what, "bones_before": b0, "bones_after": model.num_bones})
     log.info("M-step epoch %d: %s, %d -> %d bones", epoch, what, b0, model.num_bones)
     return True
@@ -152,24 +153,24 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int) -> bool:
             edit = sk.SkeletonEdit(centers=C2, precisions=Q, parents=state.parents.copy(),
                                    sources=[[(b, 1.0)] for b in range(len(C))],
                                    kept=np.zeros(len(C), bool), extents=state.extents)
-            changed |= _apply(model, opt, state, edit, "shift", epoch, sc.t_r, sc.centre_joints)
+            changed |= _apply(model, opt, state, edit, "shift", epoch, sc)
             X, W = _xw(model)
             C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
         anchors = sk.parent_anchors(state.parents, state.joints, state.joint_positions) if len(state.joints) else None
         edit = sk.grow_skeleton(X, W, C, Q, state.parents, state.extents, growth_factor=sc.growth_factor,
                                 sections=sc.growth_sections, anchors=anchors, sharpness=sc.sharpness)
         if model.num_bones + (edit.num_bones - model.num_bones) <= sc.max_bones:
-            changed |= _apply(model, opt, state, edit, "grow", epoch, sc.t_r, sc.centre_joints)
+            changed |= _apply(model, opt, state, edit, "grow", epoch, sc)
     elif epoch == sc.e1:
         edit = sk.upsample_skeleton(X, W, C, Q, state.parents, min_relative_extent=sc.upsample_min_extent,
                                     sharpness=sc.sharpness, extents=state.extents)
         if edit.num_bones <= sc.max_bones:
-            changed |= _apply(model, opt, state, edit, "upsample", epoch, sc.t_r, sc.centre_joints)
+            changed |= _apply(model, opt, state, edit, "upsample", epoch, sc)
     else:
         S = bone_motion_similarity(model, data, cfg)
         edit = sk.merge_bones(S, W, C, Q, state.parents, t_o=sc.t_o, mode=sc.merge_mode,
                               temperature=sc.merge_temperature, extents=state.extents)
-        changed |= _apply(model, opt, state, edit, "merge", epoch, sc.t_r, sc.centre_joints)
+        changed |= _apply(model, opt, state, edit, "merge", epoch, sc)
         if len(state.joints):
             split, E = bone_length_variation(model, data, state, cfg)
             if split.any() and model.num_bones + int(split.sum()) <= sc.max_bones:
@@ -177,7 +178,7 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int) -> bool:
                 C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
                 edit = sk.split_at_joints(X, W, C, Q, state.parents, E, split, sharpness=sc.sharpness,
                                           extents=state.extents)
-                changed |= _apply(model, opt, state, edit, "joint", epoch, sc.t_r, sc.centre_joints)
+                changed |= _apply(model, opt, state, edit, "joint", epoch, sc)
     if not changed:
         state.history.append({"epoch": epoch, "operation": "none", "bones_before": model.num_bones,
                               "bones_after": model.num_bones})

@@ -238,26 +238,32 @@ def joint_positions(verts, weights, pairs, t_r: float = 0.4, fallback_count: int
     return np.einsum("jn,...nc->...jc", Ssel, X)
 
 
-def centre_in_body(points, verts, faces, iterations: int = 2, inset: float = 1e-3) -> np.ndarray:
-    """Move points (joints) to the middle of the body's local cross-section: the skeleton inside the body.
+def centre_in_body(points, verts, faces, iterations: int = 2, max_depth: float = 0.03, inset: float = 1e-3
+                   ) -> np.ndarray:
+    """Move points (joints) into the body: onto a thin limb's axis, a little way into a thick part.
 
     The mean of the vertices two bones share lies on the surface wherever those vertices are on one
-    side of a limb. Each iteration takes the nearest surface point c at distance a and casts one ray
-    from the point away from c to the opposite wall at distance b, then moves the point to the middle
-    of that chord (by (a - b) / 2 towards c). A point outside, or within ``inset`` of the surface,
-    first moves ``inset`` inside c along the surface normal there (the area-weighted vertex normals
-    interpolated over c's face, which also points sensibly at a vertex or an edge). For a tube the
-    nearest-point direction is radial, so one pass puts a point on the axis; the second settles it.
+    side of a limb. Each iteration takes the point's nearest surface point c (distance a, direction u
+    from the point to c) and casts one ray from the point away from c to the opposite wall: the chord
+    through the body there has length a + b. The wanted depth below c is h = min(chord / 2,
+    ``max_depth`` x the bounding-box diagonal); a point shallower than h moves to ``c - h u``, a deeper
+    one stays. So a point in a thin limb goes to the middle of its cross-section (for a tube, on the
+    axis), and a hip joint at the side of the torso goes just inside it instead of onto the midline.
+    A point outside, or within ``inset`` of the surface, starts ``inset`` inside c along the surface
+    normal there (the face's; on an edge or a vertex, the area-weighted vertex normals interpolated
+    over the face). A point still outside
+    after that (a spike tip or a fold, where no normal points inwards) goes to the nearest of the chord
+    middles cast inward from every vertex.
 
     Args:
         points: ``(J, 3)`` positions in the mesh's frame.
         verts: ``(N, 3)``; faces: ``(F, 3)`` a closed, consistently wound mesh.
         iterations: passes.
-        inset: how far inside the surface a point on it is put first, as a fraction of the mesh's
-            bounding-box diagonal.
+        max_depth: deepest a point is moved below the surface, as a fraction of the bounding-box diagonal.
+        inset: how far inside the surface a point on it starts, as a fraction of that diagonal.
 
     Returns:
-        ``(J, 3)`` float64 positions (a point whose ray finds no opposite wall stays where it is).
+        ``(J, 3)`` float64 positions.
     """
     from s3o_warp.kernels.sdf import closest_point, ray_hit
 
@@ -274,12 +280,14 @@ def centre_in_body(points, verts, faces, iterations: int = 2, inset: float = 1e-
     for k in range(3):
         np.add.at(vn, Fi[:, k], fn)
     vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-30)
-    eps = inset * float(np.linalg.norm(X.max(0) - X.min(0)))
+    diag = float(np.linalg.norm(X.max(0) - X.min(0)))
+    eps, cap = inset * diag, max_depth * diag
     for _ in range(max(0, iterations)):
         d, f, b = closest_point(V, F, torch.as_tensor(P))
         d, f, b = d.double().numpy(), f.numpy(), b.double().numpy()
         c = np.einsum("jk,jkc->jc", b, tri[f])
-        n = np.einsum("jk,jkc->jc", b, vn[Fi[f]])
+        # the face's normal inside it; on an edge or a vertex the interpolated vertex normals (a spike tip)
+        n = np.where((b.min(1) > 1e-3)[:, None], fn[f], np.einsum("jk,jkc->jc", b, vn[Fi[f]]))
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
         near = d > -eps  # outside, or on the surface: start just inside c
         to_c = c - P
@@ -289,7 +297,21 @@ def centre_in_body(points, verts, faces, iterations: int = 2, inset: float = 1e-
         a = np.where(near, eps, dist)
         t, hit = ray_hit(V, F, torch.as_tensor(start), torch.as_tensor(-u), max_t=1e6)
         t, ok = t.double().numpy(), hit.numpy() >= 0
-        P = np.where(ok[:, None], start + u * (0.5 * (a - t))[:, None], P)
+        h = np.minimum(0.5 * (a + t), cap)
+        move = ok & (near | (a < h))
+        P = np.where(move[:, None], c - u * h[:, None], P)
+    # a point at a spike or fold can have no usable inward direction: snap what is still outside to the
+    # nearest middle of an inward chord from a vertex (points inside the body, one per vertex)
+    out = closest_point(V, F, torch.as_tensor(P))[0].numpy() >= 0
+    if out.any():
+        o = X - eps * vn
+        t, hit = ray_hit(V, F, torch.as_tensor(o), torch.as_tensor(-vn), max_t=1e6)
+        mids = (o - vn * (0.5 * t.double().numpy())[:, None])[hit.numpy() >= 0]
+        if len(mids):
+            mids = mids[closest_point(V, F, torch.as_tensor(mids))[0].numpy() < 0]
+        if len(mids):
+            near = np.linalg.norm(P[out][:, None] - mids[None], axis=-1).argmin(1)
+            P[out] = mids[near]
     return P
 
 

@@ -322,10 +322,12 @@ def test_centre_in_body_puts_joints_on_a_tube_axis():
                     [0.14, 0.0, -0.2],  # outside, 0.04 off the wall
                     [0.03, -0.05, 0.3],  # inside, off axis
                     [0.0, 0.0, 0.0]])  # on the axis already
-    out = centre_in_body(pts, tube.vertices, tube.faces)
+    out = centre_in_body(pts, tube.vertices, tube.faces, max_depth=0.2)  # 0.2 x 1.04 > the radius
     np.testing.assert_allclose(out[:, :2], 0.0, atol=3e-3)  # on the axis (48-gon: radius within 0.3%)
     np.testing.assert_allclose(out[:, 2], pts[:, 2], atol=1e-6)  # along it, where they were
-    # a box: a point near one face goes to the middle between that face and the opposite one
-    box = trimesh.creation.box(extents=(2.0, 0.4, 1.0))
-    out = centre_in_body(np.array([[0.5, 0.19, 0.1]]), box.vertices, box.faces)
-    np.testing.assert_allclose(out, [[0.5, 0.0, 0.1]], atol=1e-5)
+    # a thick box: a point near a face goes max_depth x the diagonal below it, not to the middle; a deeper
+    # point stays where it is
+    box = trimesh.creation.box(extents=(2.0, 0.8, 1.0))
+    cap = 0.03 * np.sqrt(4.0 + 0.64 + 1.0)
+    out = centre_in_body(np.array([[0.5, 0.39, 0.1], [0.5, 0.45, 0.1], [0.2, 0.1, 0.0]]), box.vertices, box.faces)
+    np.testing.assert_allclose(out, [[0.5, 0.4 - cap, 0.1], [0.5, 0.4 - cap, 0.1], [0.2, 0.1, 0.0]], atol=1e-5)
