@@ -66,7 +66,7 @@ class CoarseSettings(SettingsReplace):
     """Symmetric limbs' end nodes go to z = +-dz_fraction x torso (root) radius, in metres of the object frame."""
     junction_dz_fraction: float = 0.8
     """Without girdles: a paired limb's junction end goes off the plane by min(dz, this x the junction's 2D radius)."""
-    girdles: bool = False
+    girdles: bool = True
     """Paired limbs move off the plane by the full dz, parallel to it, and a 'girdle' ellipsoid at their junction
     (radii r_junction, r_junction, dz + r_limb) joins them to the body, like hips and shoulders; false = only
     their junction ends move, by at most junction_dz_fraction x the junction's radius (limbs nearly touch)."""

