@@ -236,7 +236,8 @@ def lift_to_3d(skel: Skeleton2D, K, depth: float, settings: CoarseSettings | Non
     E = len(skel.edges)
     # a paired limb is moved off the plane as a whole (parallel to it), not only at its end node:
     # a leg hanging from the spine at z = 0 would fuse with its partner along the upper half
-    # (at most ``junction_dz_fraction`` of the junction's own radius there, so the limb stays attached)
+    # (by dz with a girdle joining it to the body; without, at most ``junction_dz_fraction`` of the
+    # junction's own radius, so the limb stays attached)
     edge_dz = np.zeros(E)
     girdle_c, girdle_r = [], []
     for e1, e2 in pairs:
@@ -251,10 +252,9 @@ def lift_to_3d(skel: Skeleton2D, K, depth: float, settings: CoarseSettings | Non
     centres = np.empty((E, 3))
     rotations = np.empty((E, 3, 3))
     radii = np.empty((E, 3))
-    for e, (u, v) in enumerate(skel.edges):
-        pu, pv = nodes[u].copy(), nodes[v].copy()
-        pu[2] = pu[2] if node_z[u] != 0 else pu[2] + edge_dz[e]
-        pv[2] = pv[2] if node_z[v] != 0 else pv[2] + edge_dz[e]
+    ends = _shifted_ends(nodes, skel.edges, edge_dz)
+    for e in range(E):
+        pu, pv = ends[e]
         a = pv - pu
         length = float(np.linalg.norm(a))
         r = skel.edge_radius[e] * depth / f
@@ -387,14 +387,18 @@ def ellipsoid_union_mesh(coarse: Coarse3D, target_vertices: int | None = None,
 # bones
 
 
+def _shifted_ends(nodes: np.ndarray, edges: np.ndarray, edge_dz: np.ndarray | None) -> np.ndarray:
+    ends = nodes[edges].copy()
+    if edge_dz is not None:
+        on_plane = np.isclose(ends[..., 2], 0.0, rtol=0.0, atol=1e-12)
+        ends[..., 2] += np.where(on_plane, edge_dz[:, None], 0.0)
+    return ends
+
+
 def edge_ends(coarse: Coarse3D) -> np.ndarray:
     """``(E, 2, 3)`` the 3D ends of each edge's ellipsoid axis: the edge's nodes, except that a paired
     limb's end on the symmetry plane (its junction end) is shifted by ``edge_dz`` like the rest of it."""
-    ends = coarse.nodes[coarse.edges].copy()
-    if coarse.edge_dz is not None:
-        on_plane = np.isclose(ends[..., 2], 0.0, rtol=0.0, atol=1e-12)
-        ends[..., 2] += np.where(on_plane, coarse.edge_dz[:, None], 0.0)
-    return ends
+    return _shifted_ends(coarse.nodes, coarse.edges, coarse.edge_dz)
 
 
 def init_bones(coarse: Coarse3D, settings: CoarseSettings | None = None) -> Bones:

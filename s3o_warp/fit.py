@@ -456,11 +456,11 @@ class Fitter:
                 continue
             src = int(idx[(idx - f).abs().argmin()])
             inward = src - 1 if f > src else src + 1
-            k = abs(f - src)
+            step = a * abs(f - src) if a > 0 and 0 <= inward < T and bool(visited[inward]) else 0.0
             for p in (m.root_aa, m.root_t, m.bone_aa, m.bone_t):
                 p.data[f] = p.data[src]
-                if a > 0 and 0 <= inward < T and bool(visited[inward]):
-                    p.data[f] += a * k * (p.data[src] - p.data[inward])
+                if step:
+                    p.data[f] += step * (p.data[src] - p.data[inward])
         visited[frames] = True
 
     def motion_losses(self, frames: torch.Tensor) -> dict:
