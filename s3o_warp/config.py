@@ -103,6 +103,9 @@ class MotionConfig:
     hypothesis_score: str = "flow"
     """What ranks the hypotheses: total (the whole loss) or flow (the optical-flow term: texture motion
     tells a turn from a deformation; falls back to total when a sequence has no flow)."""
+    hypothesis_all_frames: bool = True
+    """Score each hypothesis, after its steps, by one pass over every frame (false: the mean of its last third
+    of training windows, which only sees the frames those random windows happened to hold)."""
     turn_rate: float | None = None
     """Known camera turn rate about the object's vertical axis, degrees per frame: used as is, no hypotheses scored."""
     warmup_sweep: float = 0.5

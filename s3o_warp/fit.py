@@ -653,8 +653,13 @@ class Fitter:
                 score = terms["flow"][1] if mc.hypothesis_score == "flow" and "flow" in terms else total
                 losses.append(float(score.detach()))
             self.step = 0
-            tail = losses[-max(1, len(losses) // 3):]
-            scores.append(float(np.mean(tail)))
+            if mc.hypothesis_all_frames and np.isfinite(losses).all():
+                terms = self.mean_terms()
+                key = "flow" if mc.hypothesis_score == "flow" and "flow" in terms else None
+                scores.append(terms[key] if key else sum(terms.values()))
+            else:
+                tail = losses[-max(1, len(losses) // 3):]
+                scores.append(float(np.mean(tail)))
         best = float(rates[int(np.argmin(scores))] if mc.turn_rate is None else rates[0])
         apply(best)
         m.visited.zero_()
@@ -664,6 +669,21 @@ class Fitter:
                    "rates_deg_per_frame": [float(r) for r in rates], "scores": scores, "chosen": best})
         log.info("camera hypotheses: turn rate %.2f deg/frame chosen (scores %s)", best, ", ".join(f"{x:.4f}" for x in scores))
         return best
+
+    @torch.no_grad()
+    def mean_terms(self) -> dict[str, float]:
+        """Every weighted motion loss term averaged over windows that cover all frames (no step taken)."""
+        T = self.data.num_frames
+        n = min(self.cfg.motion.batch_frames, T)
+        starts = list(range(0, max(T - n, 0) + 1, max(n - 1, 1)))  # consecutive windows share a frame: every pair
+        if starts[-1] != T - n:
+            starts.append(T - n)
+        acc: dict[str, list[float]] = {}
+        for s in starts:
+            terms, _, _ = self.motion_losses(torch.arange(s, s + n, device=self.device))
+            for k, (w, v) in terms.items():
+                acc.setdefault(k, []).append(float(w * v))
+        return {k: float(np.mean(v)) for k, v in acc.items()}
 
     def _step_window(self, frames: torch.Tensor | None) -> None:
         """Optimiser step that moves per-frame parameters only for the frames of this batch.

@@ -236,6 +236,32 @@ def test_camera_hypotheses_score_each_rate_and_keep_the_best(tiny_sequence, tmp_
     torch.testing.assert_close(rel, axis_angle_to_matrix(aa)[0], atol=1e-5, rtol=0)
 
 
+def test_hypotheses_are_scored_on_every_frame(tiny_sequence, tmp_path, monkeypatch):
+    """The all-frames score sees every frame and every flow pair (t, t+1) once the steps are done."""
+    cfg = _cfg(**{"coarse.steps": 2, "motion.batch_frames": 3})
+    data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
+    f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
+    seen, orig = [], Fitter.motion_losses
+
+    def record(self, frames):
+        seen.append(frames.tolist())
+        return orig(self, frames)
+
+    monkeypatch.setattr(Fitter, "motion_losses", record)
+    terms = f.mean_terms()
+    T = data.num_frames
+    assert sorted({t for w in seen for t in w}) == list(range(T))
+    pairs = {(w[i], w[i + 1]) for w in seen for i in range(len(w) - 1)}
+    assert pairs == {(t, t + 1) for t in range(T - 1)}
+    assert all(w == list(range(w[0], w[0] + 3)) for w in seen)
+    # each term is the mean over those windows of weight x value
+    windows = [torch.tensor(w) for w in seen]
+    for k in ("sil", "flow"):
+        with torch.no_grad():
+            want = np.mean([float(w * v) for w, v in (orig(f, fr)[0][k] for fr in windows)])
+        assert terms[k] == pytest.approx(want, rel=1e-6)
+
+
 def test_temporal_smoothness_orders():
     from s3o_warp import losses as L
 
