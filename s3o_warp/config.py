@@ -139,6 +139,9 @@ class MotionConfig:
     """Weight of the silhouette loss (mean squared error of the soft silhouette)."""
     w_flow: float = 0.02
     """Weight of the optical-flow loss (confidence-weighted L2 of rendered vs observed flow, crop pixels)."""
+    w_flow_warmup: float | None = None
+    """Weight of the optical-flow loss during the warm-up (mesh frozen, so flow errors at the outline cannot
+    bend the shape; the legs' paths through their crossings are settled there); None = ``w_flow``."""
     w_color: float = 0.2
     """Weight of the colour L1 loss."""
     w_rigid: float = 1.0

@@ -481,13 +481,14 @@ class Fitter:
         if mc.w_color > 0:
             col = interpolate(m.colors(), m.faces, face_index, bary)
             terms["color"] = (mc.w_color, L.color_loss(col, d.images[frames], fg * mask))
-        if mc.w_flow > 0 and len(frames) > 1:
+        w_flow = mc.w_flow_warmup if self.phase == "warmup" and mc.w_flow_warmup is not None else mc.w_flow
+        if w_flow > 0 and len(frames) > 1:
             vflow = L.vertex_flow_crop(verts, K)
             fi = face_index[:-1]
             rflow = interpolate(vflow, m.faces, fi, bary[:-1])
             pairs = frames[:-1]
             valid = fg[:-1] * mask[:-1]
-            terms["flow"] = (mc.w_flow, L.flow_loss(rflow, d.flow_fwd[pairs], d.conf_fwd[pairs], valid))
+            terms["flow"] = (w_flow, L.flow_loss(rflow, d.flow_fwd[pairs], d.conf_fwd[pairs], valid))
         if len(frames) > 1 and mc.rigidity != "none" and mc.w_rigid > 0:
             if mc.rigidity == "dynamic":
                 terms["rigid"] = (mc.w_rigid, dynamic_rigidity_loss(verts, self.edges, W.detach()))
