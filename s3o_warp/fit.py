@@ -271,6 +271,8 @@ class Fitter:
             raise ConfigError(f"motion.hypothesis_score must be 'total' or 'flow', got {cfg.motion.hypothesis_score!r}")
         if cfg.motion.smooth_order not in (1, 2):
             raise ConfigError(f"motion.smooth_order must be 1 or 2, got {cfg.motion.smooth_order}")
+        if cfg.motion.sweep_stride < 0:
+            raise ConfigError(f"motion.sweep_stride must be >= 0 (0 = half the window), got {cfg.motion.sweep_stride}")
         self.coarse = coarse_res
         self.model = S3OModel(coarse_res.init).to(device)
         self.edges = mesh_edges(self.model.faces).to(device)
@@ -399,7 +401,7 @@ class Fitter:
         """Window starts of the warm-up sweep: the canonical frame's window, then outward both ways."""
         T = self.data.num_frames
         n = min(self.cfg.motion.batch_frames, T)
-        stride = max(1, n // 2)
+        stride = max(1, self.cfg.motion.sweep_stride or n // 2)
         s0 = min(max(self.coarse.canonical - n // 2, 0), T - n)
         right = list(range(s0 + stride, T - n + 1, stride))
         if right and right[-1] != T - n:

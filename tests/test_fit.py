@@ -301,6 +301,27 @@ def test_sweep_seeds_new_frames_at_constant_velocity(tiny_sequence, tmp_path, a)
                torch.device("cpu"))
 
 
+@pytest.mark.parametrize("stride", [0, 1, 3])
+def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
+    cfg = _cfg(**{"coarse.steps": 2, "motion.batch_frames": 4, "motion.sweep_stride": stride})
+    data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
+    f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
+    T, n, c = data.num_frames, 4, f.coarse.canonical
+    starts = f.sweep_starts()
+    s0 = min(max(c - n // 2, 0), T - n)
+    assert starts[0] == s0 and 0 in starts and T - n in starts and len(set(starts)) == len(starts)
+    step = stride or n // 2
+    right = [s for s in starts if s > s0]
+    left = [s for s in starts if s < s0]
+    assert right == sorted(right) and left == sorted(left, reverse=True)  # outward on each side
+    for side in (right, left):  # consecutive stages move by the stride (the last may be shorter, to reach the end)
+        gaps = np.abs(np.diff([s0] + side))
+        assert (gaps[:-1] == step).all() and 0 < gaps[-1] <= step if len(gaps) else True
+    with pytest.raises(ConfigError, match="sweep_stride"):
+        Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["motion.sweep_stride=-1"]), tmp_path,
+               torch.device("cpu"))
+
+
 def test_known_turn_rate_skips_the_scoring(tiny_sequence, tmp_path):
     cfg = _cfg(**{"coarse.steps": 2, "motion.warmup_steps": 2, "motion.steps": 2, "motion.turn_rate": 1.5})
     run = tmp_path / "run"
