@@ -271,6 +271,8 @@ class Fitter:
             raise ConfigError(f"motion.hypothesis_score must be 'total' or 'flow', got {cfg.motion.hypothesis_score!r}")
         if cfg.motion.smooth_order not in (1, 2):
             raise ConfigError(f"motion.smooth_order must be 1 or 2, got {cfg.motion.smooth_order}")
+        if not 0.0 <= cfg.skeleton.merge_quantile < 1.0:
+            raise ConfigError(f"skeleton.merge_quantile must be in [0, 1) (0 = every frame), got {cfg.skeleton.merge_quantile}")
         if cfg.motion.sweep_stride < 0:
             raise ConfigError(f"motion.sweep_stride must be >= 0 (0 = half the window), got {cfg.motion.sweep_stride}")
         self.coarse = coarse_res

@@ -118,7 +118,8 @@ def bone_motion_similarity(model, data, cfg) -> np.ndarray:
         valid.append(ok)
     FB = torch.cat(FB, 0)
     valid = torch.cat(valid, 0)
-    return sk.motion_similarity(FB, valid, min_flow=sc.min_flow, min_frames=sc.min_frames).cpu().double().numpy()
+    return sk.motion_similarity(FB, valid, min_flow=sc.min_flow, min_frames=sc.min_frames,
+                                quantile=sc.merge_quantile).cpu().double().numpy()
 
 
 @torch.no_grad()

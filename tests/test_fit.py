@@ -317,6 +317,9 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
     for side in (right, left):  # consecutive stages move by the stride (the last may be shorter, to reach the end)
         gaps = np.abs(np.diff([s0] + side))
         assert (gaps[:-1] == step).all() and 0 < gaps[-1] <= step if len(gaps) else True
+    with pytest.raises(ConfigError, match="merge_quantile"):
+        Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["skeleton.merge_quantile=1"]), tmp_path,
+               torch.device("cpu"))
     with pytest.raises(ConfigError, match="sweep_stride"):
         Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["motion.sweep_stride=-1"]), tmp_path,
                torch.device("cpu"))

@@ -152,7 +152,7 @@ def test_bone_flow_barely_visible_is_invalid():
 # -------------------------------------------------------------------------------------------------
 
 
-def _similarity_naive(F, valid, m, min_frames):
+def _similarity_naive(F, valid, m, min_frames, q=0.0):
     T1, B = valid.shape
     out = np.full((B, B), -np.inf)
     for a in range(B):
@@ -164,7 +164,7 @@ def _similarity_naive(F, valid, m, min_frames):
                 if valid[t, a] and valid[t, b] and (na >= m or nb >= m):
                     vals.append(fa @ fb / (max(na, m) * max(nb, m)))
             if len(vals) >= min_frames:
-                out[a, b] = min(vals)
+                out[a, b] = np.quantile(vals, q)
         out[a, a] = 1
     return out
 
@@ -190,6 +190,24 @@ def test_motion_similarity_together_vs_different_and_static_frames():
     F2 = F.copy()
     F2[4, 1] = 0
     assert sk.motion_similarity(torch.tensor(F2).float(), torch.tensor(valid))[0, 1] < 0.05
+
+
+def test_motion_similarity_quantile_forgives_a_few_noisy_frames():
+    rng = np.random.default_rng(5)
+    T1 = 20
+    d = rng.normal(size=(T1, 2)) * 3
+    F = np.stack([d, d + rng.normal(0, 0.05, (T1, 2)), -d], 1)  # 0 and 1 together, 2 opposite
+    F[7, 1] = -F[7, 0]  # one frame of flow noise
+    valid = np.ones((T1, 3), bool)
+    valid[:3, 2] = False
+    for q in (0.0, 0.1, 0.3):
+        Sim = sk.motion_similarity(torch.tensor(F).float(), torch.tensor(valid), quantile=q)
+        np.testing.assert_allclose(Sim.numpy(), _similarity_naive(F, valid, 0.5, 2, q), atol=1e-5)
+    assert sk.motion_similarity(torch.tensor(F).float(), torch.tensor(valid))[0, 1] < -0.9  # min: vetoed
+    assert sk.motion_similarity(torch.tensor(F).float(), torch.tensor(valid), quantile=0.1)[0, 1] > 0.99
+    assert sk.motion_similarity(torch.tensor(F).float(), torch.tensor(valid), quantile=0.1)[0, 2] < -0.99
+    with pytest.raises(ValueError, match="quantile"):
+        sk.motion_similarity(torch.tensor(F).float(), torch.tensor(valid), quantile=1.0)
 
 
 def test_merge_together_merges_and_different_does_not():
