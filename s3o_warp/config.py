@@ -103,6 +103,11 @@ class MotionConfig:
     hypothesis_score: str = "flow"
     """What ranks the hypotheses: total (the whole loss) or flow (the optical-flow term: texture motion
     tells a turn from a deformation; falls back to total when a sequence has no flow)."""
+    hypothesis_refine: int = 3
+    """The best this many hypotheses go on for hypothesis_refine_steps more steps and are ranked again (0 or 1 =
+    off): after a short fit the scores of neighbouring turn rates are often within a few per cent."""
+    hypothesis_refine_steps: int = 60
+    """Further steps of each refined hypothesis."""
     hypothesis_all_frames: bool = True
     """Score each hypothesis, after its steps, by one pass over every frame (false: the mean of its last third
     of training windows, which only sees the frames those random windows happened to hold)."""

@@ -632,47 +632,71 @@ class Fitter:
             with torch.no_grad():
                 m.root_R0.copy_(base["root_R0"] @ axis_angle_to_matrix(aa))
 
-        if mc.turn_rate is not None:
-            rates, scores = np.array([float(mc.turn_rate)]), [float("nan")]
-        else:
-            scores = []
-        for rate in rates if mc.turn_rate is None else []:
-            apply(float(rate))
-            self.gen.set_state(gen_state)
-            self.opt = torch.optim.Adam([
+        def optimiser() -> torch.optim.Optimizer:
+            return torch.optim.Adam([
                 {"params": [m.root_aa, m.root_t], "lr": mc.lr_motion, "name": "motion"},
                 {"params": [m.log_focal, m.pp], "lr": mc.lr_camera, "name": "camera"}]) if mc.hypothesis_root_only \
                 else self._make_optimizer()
+
+        def train(steps: int) -> float:
+            """``steps`` warm-up steps on random windows from the current state, then this hypothesis' score."""
             losses = []
-            for i in range(mc.hypothesis_steps):
+            for i in range(steps):
                 frames = self._random_window()
                 self.opt.zero_grad(set_to_none=True)
                 terms, _, _ = self.motion_losses(frames)
                 total = sum(w * v for w, v in terms.values())
                 if not torch.isfinite(total):
-                    losses.append(float("inf"))
-                    break
+                    self.step = 0
+                    return float("inf")
                 total.backward()
                 self._step_window(frames)
                 self.step += 1
                 score = terms["flow"][1] if mc.hypothesis_score == "flow" and "flow" in terms else total
                 losses.append(float(score.detach()))
             self.step = 0
-            if mc.hypothesis_all_frames and np.isfinite(losses).all():
+            if mc.hypothesis_all_frames or not losses:
                 terms = self.mean_terms()
                 key = "flow" if mc.hypothesis_score == "flow" and "flow" in terms else None
-                scores.append(terms[key] if key else sum(terms.values()))
-            else:
-                tail = losses[-max(1, len(losses) // 3):]
-                scores.append(float(np.mean(tail)))
-        best = float(rates[int(np.argmin(scores))] if mc.turn_rate is None else rates[0])
+                return terms[key] if key else sum(terms.values())
+            return float(np.mean(losses[-max(1, len(losses) // 3):]))
+
+        refined: dict[float, float] = {}
+        if mc.turn_rate is not None:
+            rates, scores = np.array([float(mc.turn_rate)]), [float("nan")]
+        else:
+            scores, snaps = [], []
+            for rate in rates:
+                apply(float(rate))
+                self.gen.set_state(gen_state)
+                self.opt = optimiser()
+                scores.append(train(mc.hypothesis_steps))
+                keep = mc.hypothesis_refine > 1 and mc.hypothesis_refine_steps > 0
+                snaps.append((copy.deepcopy(m.state_dict()), copy.deepcopy(self.opt.state_dict()),
+                              self.gen.get_state()) if keep else None)
+            if snaps and snaps[0] is not None:  # the best few go on from where they stopped and are ranked again
+                top = [int(i) for i in np.argsort(scores)[: mc.hypothesis_refine] if np.isfinite(scores[i])]
+                for i in top:
+                    m.load_state_dict(snaps[i][0])
+                    self.opt = optimiser()
+                    self.opt.load_state_dict(snaps[i][1])
+                    self.gen.set_state(snaps[0][2])  # the same windows for every finalist
+                    refined[float(rates[i])] = train(mc.hypothesis_refine_steps)
+                del snaps
+        if refined:
+            best = min(refined, key=refined.get)
+        else:
+            best = float(rates[int(np.argmin(scores))] if mc.turn_rate is None else rates[0])
         apply(best)
         m.visited.zero_()
         self.gen.set_state(gen_state)
         self.opt = self._make_optimizer()
         self._log({"phase": "eval", "step": 0, "seconds": round(time.perf_counter() - self.t0, 3), "what": "hypotheses",
-                   "rates_deg_per_frame": [float(r) for r in rates], "scores": scores, "chosen": best})
-        log.info("camera hypotheses: turn rate %.2f deg/frame chosen (scores %s)", best, ", ".join(f"{x:.4f}" for x in scores))
+                   "rates_deg_per_frame": [float(r) for r in rates], "scores": scores,
+                   "refined": {f"{r:g}": v for r, v in refined.items()}, "chosen": best})
+        log.info("camera hypotheses: turn rate %.2f deg/frame chosen (scores %s%s)", best,
+                 ", ".join(f"{x:.4f}" for x in scores),
+                 "; refined " + ", ".join(f"{r:g}: {v:.4f}" for r, v in refined.items()) if refined else "")
         return best
 
     @torch.no_grad()

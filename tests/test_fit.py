@@ -215,17 +215,24 @@ def test_nan_in_a_loss_is_skipped_rolled_back_and_then_stops_naming_the_term(tin
         fit(tiny_sequence, tmp_path / "always", cfg, torch.device("cpu"))
 
 
-def test_camera_hypotheses_score_each_rate_and_keep_the_best(tiny_sequence, tmp_path):
+@pytest.mark.parametrize("refine", [0, 2])
+def test_camera_hypotheses_score_each_rate_and_keep_the_best(tiny_sequence, tmp_path, refine):
     from s3o_warp.geometry import axis_angle_to_matrix
 
     cfg = _cfg(**{"coarse.steps": 2, "motion.warmup_steps": 2, "motion.steps": 2,
-                  "motion.hypotheses": 3, "motion.hypothesis_steps": 2})
+                  "motion.hypotheses": 3, "motion.hypothesis_steps": 2, "motion.hypothesis_refine": refine,
+                  "motion.hypothesis_refine_steps": 2})
     run = tmp_path / "run"
     fit(tiny_sequence, run, cfg, torch.device("cpu"))
     rec = next(json.loads(l) for l in (run / "log.jsonl").read_text().splitlines() if '"hypotheses"' in l)
     r = cfg.motion.hypothesis_max_rate
     assert len(rec["scores"]) == 3 and rec["rates_deg_per_frame"] == [-r, 0.0, r]
-    assert rec["chosen"] == rec["rates_deg_per_frame"][int(np.argmin(rec["scores"]))]
+    if refine:  # the best two of the first round are refined and the best refined one is chosen
+        top2 = sorted(np.argsort(rec["scores"])[:2])
+        assert sorted(float(k) for k in rec["refined"]) == [rec["rates_deg_per_frame"][i] for i in top2]
+        assert rec["chosen"] == float(min(rec["refined"], key=rec["refined"].get))
+    else:
+        assert rec["refined"] == {} and rec["chosen"] == rec["rates_deg_per_frame"][int(np.argmin(rec["scores"]))]
     # the chosen turn is what the model's base root rotation holds
     st = torch.load(latest_checkpoint(run), weights_only=False)["model"]
     R0 = st["root_R0"]
