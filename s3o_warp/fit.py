@@ -640,8 +640,8 @@ class Fitter:
 
         def train(steps: int) -> float:
             """``steps`` warm-up steps on random windows from the current state, then this hypothesis' score."""
-            losses = []
-            for i in range(steps):
+            losses = []  # only ranked on when not scoring over all frames (each float() is a device sync)
+            for _ in range(steps):
                 frames = self._random_window()
                 self.opt.zero_grad(set_to_none=True)
                 terms, _, _ = self.motion_losses(frames)
@@ -652,8 +652,9 @@ class Fitter:
                 total.backward()
                 self._step_window(frames)
                 self.step += 1
-                score = terms["flow"][1] if mc.hypothesis_score == "flow" and "flow" in terms else total
-                losses.append(float(score.detach()))
+                if not mc.hypothesis_all_frames:
+                    score = terms["flow"][1] if mc.hypothesis_score == "flow" and "flow" in terms else total
+                    losses.append(float(score.detach()))
             self.step = 0
             if mc.hypothesis_all_frames or not losses:
                 terms = self.mean_terms()
@@ -666,15 +667,15 @@ class Fitter:
             rates, scores = np.array([float(mc.turn_rate)]), [float("nan")]
         else:
             scores, snaps = [], []
+            keep = mc.hypothesis_refine > 1 and mc.hypothesis_refine_steps > 0
             for rate in rates:
                 apply(float(rate))
                 self.gen.set_state(gen_state)
                 self.opt = optimiser()
                 scores.append(train(mc.hypothesis_steps))
-                keep = mc.hypothesis_refine > 1 and mc.hypothesis_refine_steps > 0
                 snaps.append((copy.deepcopy(m.state_dict()), copy.deepcopy(self.opt.state_dict()),
                               self.gen.get_state()) if keep else None)
-            if snaps and snaps[0] is not None:  # the best few go on from where they stopped and are ranked again
+            if keep:  # the best few go on from where they stopped and are ranked again
                 top = [int(i) for i in np.argsort(scores)[: mc.hypothesis_refine] if np.isfinite(scores[i])]
                 for i in top:
                     m.load_state_dict(snaps[i][0])
@@ -704,7 +705,7 @@ class Fitter:
         """Every weighted motion loss term averaged over windows that cover all frames (no step taken)."""
         T = self.data.num_frames
         n = min(self.cfg.motion.batch_frames, T)
-        starts = list(range(0, max(T - n, 0) + 1, max(n - 1, 1)))  # consecutive windows share a frame: every pair
+        starts = list(range(0, T - n + 1, max(n - 1, 1)))  # consecutive windows share a frame: every pair
         if starts[-1] != T - n:
             starts.append(T - n)
         acc: dict[str, list[float]] = {}
