@@ -152,6 +152,15 @@ class MotionConfig:
     bend the shape; the legs' paths through their crossings are settled there); None = ``w_flow``."""
     w_color: float = 0.2
     """Weight of the colour L1 loss."""
+    resolve_crossings: bool = False
+    """After the warm-up, let each symmetric limb pair of the lift swing through its crossings instead of
+    bouncing back (frames relabelled by the feet's accelerations, ``s3o_warp.crossings``)."""
+    crossing_max_gap: float = 0.5
+    """Two limbs' paths may be exchanged only where their ends are at most this x the limb length apart."""
+    crossing_window: int = 2
+    """Frames over which the feet's velocities before and after a crossing are measured."""
+    crossing_ratio: float = 0.75
+    """Exchange two limbs' paths where that changes their velocities by less than this x keeping them does."""
     w_rigid: float = 1.0
     """Weight of the dynamic rigidity loss (eq. 1-2, corrected as in DESIGN.md)."""
     rigidity: str = "dynamic"

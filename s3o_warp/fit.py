@@ -179,6 +179,7 @@ class CoarseResult:
     part_masks: torch.Tensor  # (P,S,S) of the canonical frame
     face_parts: torch.Tensor  # (F,) part index of each face
     joints: tuple = ((), ())  # (bone pairs (J,2), positions (J,3)) in the object frame
+    limb_pairs: tuple = ()  # crossings.LimbPair per symmetric limb pair of the lift (one bone each)
 
 
 def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
@@ -198,6 +199,7 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
     verts, faces = coarse.ellipsoid_union_mesh(lifted, settings=settings)
     bones = coarse.init_bones(lifted, settings)
     parts = coarse.part_masks(masks[c], skel)
+    limb_pairs = _limb_pairs(lifted, bones)
     T = data.num_frames
     root = np.asarray(lifted.root_transform, dtype=np.float64)
     # precision Q = V^T diag(lam) V  ->  orientation V (rows = axes) and log-scales log(lam)
@@ -234,9 +236,32 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
         sym_plane=(np.asarray(lifted.symmetry_plane[0], dtype=np.float32), float(lifted.symmetry_plane[1])),
         parents=np.asarray(bones.parents),
         joints=(np.asarray(bones.joints), np.asarray(bones.joint_positions)),
+        limb_pairs=limb_pairs,
         part_masks=torch.as_tensor(parts, dtype=torch.float32),
         face_parts=fpart,
     )
+
+
+def _limb_pairs(lifted, bones) -> tuple:
+    """The lift's symmetric limb pairs as ``crossings.LimbPair`` (rest axis from the shared junction)."""
+    from s3o_warp.coarse_lift import edge_ends
+    from s3o_warp.crossings import LimbPair
+
+    ends = edge_ends(lifted)
+    bone_of_edge = {int(e): b for b, e in enumerate(np.asarray(bones.edge_of_bone))}
+    out = []
+    for e1, e2 in np.asarray(lifted.sym_pairs).reshape(-1, 2):
+        shared = set(int(n) for n in lifted.edges[e1]) & set(int(n) for n in lifted.edges[e2])
+        if len(shared) != 1 or int(e1) not in bone_of_edge or int(e2) not in bone_of_edge:
+            continue
+        n = shared.pop()
+        axes = []
+        for e in (e1, e2):
+            i = 0 if int(lifted.edges[e][0]) == n else 1
+            axes.append((ends[e, i].copy(), ends[e, 1 - i].copy()))
+        out.append(LimbPair(a=bone_of_edge[int(e1)], b=bone_of_edge[int(e2)], top_a=axes[0][0], end_a=axes[0][1],
+                            top_b=axes[1][0], end_b=axes[1][1]))
+    return tuple(out)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -542,6 +567,8 @@ class Fitter:
                        "what": "initial", "iou_all_frames": self.hard_iou()})
         for phase in PHASES[PHASES.index(self.phase):]:
             if phase != self.phase:
+                if phase == "joint" and self.cfg.motion.resolve_crossings:
+                    self.resolve_crossings()
                 self.phase, self.step = phase, 0
                 self.opt = self._make_optimizer()
                 self._good = None
@@ -608,6 +635,22 @@ class Fitter:
             refresh_joints(self.model, self.skel, self.cfg.skeleton)
         self.phase, self.step = "done", 0
         self.save_checkpoint()
+
+    def resolve_crossings(self) -> list[int]:
+        """Paired limbs swing through their crossings instead of bouncing (``s3o_warp.crossings``); logs
+        and returns the number of exchanged frames per pair."""
+        from s3o_warp.crossings import resolve_crossings
+
+        m = self.model
+        virtual = self.cfg.skeleton.method == "virtual"  # k-means bones: the lift's pairs do not apply
+        pairs = [] if virtual else [p for p in self.coarse.limb_pairs if max(p.a, p.b) < m.num_bones]
+        mc = self.cfg.motion
+        counts = resolve_crossings(m.bone_aa, m.bone_t, m.bone_centers, pairs, self.coarse.canonical,
+                                   mc.crossing_max_gap, mc.crossing_window, mc.crossing_ratio) if pairs else []
+        self._log({"phase": "eval", "step": 0, "seconds": round(time.perf_counter() - self.t0, 3),
+                   "what": "crossings", "pairs": [[p.a, p.b] for p in pairs], "exchanged_frames": counts})
+        log.info("crossings: %d limb pairs, exchanged frames %s", len(pairs), counts)
+        return counts
 
     def select_hypothesis(self) -> float:
         """Score root-rotation hypotheses (constant turn rates about the object's vertical axis) by a short
