@@ -4,7 +4,13 @@ import numpy as np
 import pytest
 import torch
 
-from s3o_warp.crossings import LimbPair, crossing_labels, exchange_costs, exchanged_motion, resolve_crossings
+from s3o_warp.crossings import (
+    LimbPair,
+    crossing_labels,
+    exchange_costs,
+    exchanged_motion,
+    resolve_crossings,
+)
 from s3o_warp.geometry import axis_angle_to_matrix, matrix_to_axis_angle
 
 S = np.diag([1.0, 1.0, -1.0])
