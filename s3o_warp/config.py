@@ -155,6 +155,9 @@ class MotionConfig:
     resolve_crossings: bool = False
     """After the warm-up, let each symmetric limb pair of the lift swing through its crossings instead of
     bouncing back (frames relabelled by the feet's accelerations, ``s3o_warp.crossings``)."""
+    crossing_recheck: bool = True
+    """Relabel once more after the first epoch of the joint phase (before the first M-step changes the
+    bones), when the legs fit better than after the warm-up."""
     crossing_max_gap: float = 0.5
     """Two limbs' paths may be exchanged only where their ends are at most this x the limb length apart."""
     crossing_window: int = 2

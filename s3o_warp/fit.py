@@ -619,6 +619,9 @@ class Fitter:
                     self._log(rec)
                     bar.set_postfix(loss=f"{float(total):.4f}", iou=f"{iou:.3f}")
                 if phase == "joint" and self._epoch_end(n):
+                    if self.cfg.motion.resolve_crossings and self.cfg.motion.crossing_recheck \
+                            and self.step == self.steps_per_epoch(n):  # the lift's bones, before any M-step
+                        self.resolve_crossings()
                     self._m_step(n)
                 if self._stop:
                     bar.close()
@@ -645,9 +648,17 @@ class Fitter:
         virtual = self.cfg.skeleton.method == "virtual"  # k-means bones: the lift's pairs do not apply
         pairs = [] if virtual else [p for p in self.coarse.limb_pairs if max(p.a, p.b) < m.num_bones]
         mc = self.cfg.motion
+        before = (m.bone_aa.detach().clone(), m.bone_t.detach().clone())
         counts = resolve_crossings(m.bone_aa, m.bone_t, m.bone_centers, pairs, self.coarse.canonical,
                                    mc.crossing_max_gap, mc.crossing_window, mc.crossing_ratio) if pairs else []
-        self._log({"phase": "eval", "step": 0, "seconds": round(time.perf_counter() - self.t0, 3),
+        for p, old in zip((m.bone_aa, m.bone_t), before):  # Adam's moments of a rewritten frame are the
+            st = self.opt.state.get(p)                     # partner's: start them afresh
+            changed = (p.detach() != old).any(-1)
+            if st and changed.any():
+                for key in ("exp_avg", "exp_avg_sq"):
+                    if key in st:
+                        st[key][changed] = 0
+        self._log({"phase": "eval", "step": self.step, "seconds": round(time.perf_counter() - self.t0, 3),
                    "what": "crossings", "pairs": [[p.a, p.b] for p in pairs], "exchanged_frames": counts})
         log.info("crossings: %d limb pairs, exchanged frames %s", len(pairs), counts)
         return counts

@@ -120,3 +120,103 @@ def test_resolve_crossings_in_place():
     # axis-angle round trip used in place keeps rotations proper
     assert torch.allclose(axis_angle_to_matrix(matrix_to_axis_angle(axis_angle_to_matrix(bone_aa[:, 2]))),
                           axis_angle_to_matrix(bone_aa[:, 2]), atol=1e-9)
+
+
+# -- in the fit ---------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def tiny_sequence(tmp_path_factory):
+    from s3o_warp.synth import make_sequence
+
+    out = tmp_path_factory.mktemp("seq") / "quad"
+    make_sequence(out, frames=8, size=(96, 72), azim=(-15.0, 15.0), seed=0, progress=False)
+    return out
+
+
+def _cfg(**over):
+    from s3o_warp.config import make_config
+
+    base = {"data.crop_size": 64, "motion.batch_frames": 4, "output.render_video": False}
+    base.update(over)
+    return make_config("smoke", overrides=[f"{k}={v}" for k, v in base.items()])
+
+
+def test_lift_gives_mirrored_limb_pairs(tiny_sequence, tmp_path):
+    from s3o_warp.fit import coarse_model, prepare_data
+
+    cfg = _cfg()
+    res = coarse_model(prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu")), cfg)
+    assert len(res.limb_pairs) >= 1
+    for p in res.limb_pairs:
+        assert p.a != p.b and max(p.a, p.b) < len(res.parents)
+        assert res.parents[p.a] == res.parents[p.b]  # both hang from the same junction
+        assert np.allclose(p.top_a[:2], p.top_b[:2]) and p.top_a[2] < 0 < p.top_b[2]  # mirrored tops
+        assert np.linalg.norm(p.end_a - p.top_a) > 0 and np.linalg.norm(p.end_b - p.top_b) > 0
+
+
+def test_fit_relabels_after_warmup_and_first_epoch_and_resets_moments(tiny_sequence, tmp_path, monkeypatch):
+    """The pass runs at the warm-up's end and (crossing_recheck) before the first M-step; Adam's moments of
+    the rewritten frames start afresh, the others are kept."""
+    import json
+
+    import s3o_warp.crossings as X
+    from s3o_warp.fit import Fitter, coarse_model, prepare_data
+
+    cfg = _cfg(**{"coarse.steps": 5, "motion.warmup_steps": 5, "motion.steps": 8, "skeleton.epochs": 2,
+                  "motion.resolve_crossings": True, "motion.hypotheses": 1})
+    data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
+    fitter = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
+    calls = []
+
+    def fake(bone_aa, bone_t, centres, pairs, anchor, *a):
+        calls.append((fitter.phase, fitter.step))
+        if fitter.phase == "joint" and fitter.step > 0:
+            st = fitter.opt.state[fitter.model.bone_aa]
+            assert st["exp_avg_sq"].abs().sum() > 0
+            bone_aa.data[2, pairs[0].a] += 0.1  # one frame of one bone rewritten
+        return [1] + [0] * (len(pairs) - 1)
+
+    monkeypatch.setattr(X, "resolve_crossings", fake)
+    fitter.run()
+    assert [c for c in calls if isinstance(c, tuple)] == [("warmup", 5), ("joint", 4)]
+    log = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in log if r.get("what") == "crossings"] == [5, 4]  # warm-up step 5, joint step 4
+    # with recheck off, only the warm-up pass
+    calls.clear()
+    cfg2 = _cfg(**{"coarse.steps": 5, "motion.warmup_steps": 5, "motion.steps": 8, "skeleton.epochs": 2,
+                   "motion.resolve_crossings": True, "motion.crossing_recheck": False, "motion.hypotheses": 1})
+    (tmp_path / "b").mkdir()
+    Fitter(data, coarse_model(data, cfg2), cfg2, tmp_path / "b", torch.device("cpu")).run()
+    log = [json.loads(line) for line in (tmp_path / "b" / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in log if r.get("what") == "crossings"] == [5]
+
+
+def test_moments_of_rewritten_frames_are_reset(tiny_sequence, tmp_path, monkeypatch):
+    import s3o_warp.crossings as X
+    from s3o_warp.fit import Fitter, coarse_model, prepare_data
+
+    cfg = _cfg(**{"motion.resolve_crossings": True})
+    data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
+    fitter = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
+    m = fitter.model
+    fitter.phase = "joint"
+    fitter.opt = fitter._make_optimizer()
+    for p in (m.bone_aa, m.bone_t):  # some optimiser state
+        p.grad = torch.ones_like(p)
+    fitter.opt.step()
+    a = fitter.coarse.limb_pairs[0].a
+    before = {k: v.clone() for k, v in fitter.opt.state[m.bone_aa].items()}
+
+    def fake(bone_aa, bone_t, centres, pairs, anchor, *args):
+        bone_aa.data[2, a] += 0.1
+        return [1]
+
+    monkeypatch.setattr(X, "resolve_crossings", fake)
+    fitter.resolve_crossings()
+    st = fitter.opt.state[m.bone_aa]
+    for key in ("exp_avg", "exp_avg_sq"):
+        assert (st[key][2, a] == 0).all()
+        mask = torch.ones(st[key].shape[:2], dtype=torch.bool)
+        mask[2, a] = False
+        assert torch.equal(st[key][mask], before[key][mask])
