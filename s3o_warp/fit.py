@@ -251,7 +251,7 @@ def _limb_pairs(lifted, bones) -> tuple:
     bone_of_edge = {int(e): b for b, e in enumerate(np.asarray(bones.edge_of_bone))}
     out = []
     for e1, e2 in np.asarray(lifted.sym_pairs).reshape(-1, 2):
-        shared = set(int(n) for n in lifted.edges[e1]) & set(int(n) for n in lifted.edges[e2])
+        shared = {int(n) for n in lifted.edges[e1]} & {int(n) for n in lifted.edges[e2]}
         if len(shared) != 1 or int(e1) not in bone_of_edge or int(e2) not in bone_of_edge:
             continue
         n = shared.pop()
