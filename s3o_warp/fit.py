@@ -298,6 +298,10 @@ class Fitter:
             raise ConfigError(f"motion.smooth_order must be 1 or 2, got {cfg.motion.smooth_order}")
         if not 0.0 <= cfg.skeleton.merge_quantile < 1.0:
             raise ConfigError(f"skeleton.merge_quantile must be in [0, 1) (0 = every frame), got {cfg.skeleton.merge_quantile}")
+        if cfg.motion.crossing_window < 1 or cfg.motion.crossing_ratio <= 0 or cfg.motion.crossing_max_gap < 0:
+            raise ConfigError("motion.crossing_window must be >= 1, motion.crossing_ratio > 0 and motion.crossing_max_gap "
+                              f">= 0; got {cfg.motion.crossing_window}, {cfg.motion.crossing_ratio}, "
+                              f"{cfg.motion.crossing_max_gap}")
         if cfg.motion.sweep_stride < 0:
             raise ConfigError(f"motion.sweep_stride must be >= 0 (0 = half the window), got {cfg.motion.sweep_stride}")
         self.coarse = coarse_res
