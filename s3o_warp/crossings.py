@@ -7,11 +7,12 @@ silhouette is as good either way, but keypoints transferred through the surface 
 for half of every stride (the feet's ~50 % PCK-T).
 
 The two labellings differ in one thing the images do not measure: a bounce reverses both feet's
-velocity at the crossing, a swing-through does not. So after the warm-up, for every symmetric limb pair
-of the coarse lift, the frames are labelled "as fitted" or "exchanged" where going on along the other
-foot's path keeps both feet's velocities and staying does not, and the exchanged frames get the mirrored motion of the partner leg (each leg
-keeps its own side of the symmetry plane and its attachment). Pure functions; the fit calls
-:func:`resolve_crossings` once, before the joint phase.
+velocity at the crossing, a swing-through does not. So for every symmetric limb pair of the coarse
+lift, the frames are labelled "as fitted" or "exchanged" where going on along the other foot's path
+keeps both feet's velocities and staying does not, and the exchanged frames get the mirrored motion of
+the partner leg (each leg keeps its own side of the symmetry plane and its attachment). Pure
+functions; the fit calls :func:`resolve_crossings` after the warm-up and again after the first epoch
+of the joint phase (``motion.resolve_crossings``, ``motion.crossing_recheck``).
 """
 
 from __future__ import annotations
