@@ -96,19 +96,11 @@ def crossing_labels(pa: np.ndarray, pb: np.ndarray, anchor: int, max_gap: float 
 
 
 def _rot_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """The smallest rotation taking unit vector u to unit vector v (3, 3)."""
+    """The smallest rotation taking direction u to direction v (3, 3)."""
+    from scipy.spatial.transform import Rotation
+
     u, v = u / np.linalg.norm(u), v / np.linalg.norm(v)
-    w = np.cross(u, v)
-    s, c = np.linalg.norm(w), float(u @ v)
-    if s < 1e-9:
-        if c > 0:
-            return np.eye(3)
-        axis = np.cross(u, [1.0, 0, 0] if abs(u[0]) < 0.9 else [0, 1.0, 0])
-        axis /= np.linalg.norm(axis)
-        return 2 * np.outer(axis, axis) - np.eye(3)
-    k = w / s
-    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + s * Kx + (1 - c) * Kx @ Kx
+    return Rotation.align_vectors(v[None], u[None])[0].as_matrix()  # one pair: the shortest arc (scipy >= 1.11)
 
 
 def exchanged_motion(A_o: np.ndarray, b_o: np.ndarray, top_self, end_self, top_other, end_other, centre_self):
