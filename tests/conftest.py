@@ -48,3 +48,22 @@ def shared_data() -> Path:
 def _seed():
     torch.manual_seed(0)
     yield
+
+
+def smoke_config(**over):
+    """The smoke preset at 64 px crops, 4-frame windows, no videos, plus ``over`` (dotted keys)."""
+    from s3o_warp.config import make_config
+
+    base = {"data.crop_size": 64, "motion.batch_frames": 4, "output.render_video": False}
+    base.update(over)
+    return make_config("smoke", overrides=[f"{k}={v}" for k, v in base.items()])
+
+
+@pytest.fixture(scope="session")
+def tiny_sequence(tmp_path_factory):
+    """An 8-frame 96x72 clip of the built-in quadruped (rendered once per test session)."""
+    from s3o_warp.synth import make_sequence
+
+    out = tmp_path_factory.mktemp("seq") / "quad"
+    make_sequence(out, frames=8, size=(96, 72), azim=(-15.0, 15.0), seed=0, progress=False)
+    return out

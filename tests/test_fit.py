@@ -7,25 +7,21 @@ import json
 import numpy as np
 import pytest
 import torch
+from conftest import smoke_config
 
 from s3o_warp.config import make_config
 from s3o_warp.errors import ConfigError, InputError
-from s3o_warp.fit import Fitter, FitInterrupted, coarse_model, fit, latest_checkpoint, prepare_data, resolve_device
+from s3o_warp.fit import (
+    FitInterrupted,
+    Fitter,
+    coarse_model,
+    fit,
+    latest_checkpoint,
+    prepare_data,
+    resolve_device,
+)
 
-
-@pytest.fixture(scope="module")
-def tiny_sequence(tmp_path_factory):
-    from s3o_warp.synth import make_sequence
-
-    out = tmp_path_factory.mktemp("seq") / "quad"
-    make_sequence(out, frames=8, size=(96, 72), azim=(-15.0, 15.0), seed=0, progress=False)
-    return out
-
-
-def _cfg(**over):
-    base = {"data.crop_size": 64, "motion.batch_frames": 4, "output.render_video": False}
-    base.update(over)
-    return make_config("smoke", overrides=[f"{k}={v}" for k, v in base.items()])
+_cfg = smoke_config  # tiny_sequence: conftest.py
 
 
 def test_coarse_phase_builds_a_quadruped_skeleton(tiny_sequence, tmp_path):
@@ -102,10 +98,10 @@ def _check_skeleton_shape(run, sequence, metrics):
 def _check_exported_fit(run, name):
     """The export of a real fit: UsdSkel's skinning (top-K weights) and Gf.Camera reproduce the rig."""
     from pxr import Usd
+    from test_export import gf_camera_project, usd_skinned_world, validation_errors
 
     from s3o_warp.export.rig import dense_weights, load_rig, top_k_weights
     from s3o_warp.export.usd import export_usd
-    from test_export import gf_camera_project, usd_skinned_world, validation_errors
 
     rig = load_rig(run)
     B = rig.num_bones
