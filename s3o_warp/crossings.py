@@ -57,11 +57,12 @@ def exchange_costs(pa: np.ndarray, pb: np.ndarray, window: int = 2) -> tuple[np.
     T, k = len(pa), int(window)
     stay = np.full(max(T - 1, 0), np.inf)
     swap = np.full(max(T - 1, 0), np.inf)
-    for t in range(k, T - 1 - k):
+    if T - 1 - k > k:
+        t = np.arange(k, T - 1 - k)
         va_in, vb_in = (pa[t] - pa[t - k]) / k, (pb[t] - pb[t - k]) / k
         va_out, vb_out = (pa[t + 1 + k] - pa[t + 1]) / k, (pb[t + 1 + k] - pb[t + 1]) / k
-        stay[t] = float(((va_out - va_in) ** 2).sum() + ((vb_out - vb_in) ** 2).sum())
-        swap[t] = float(((vb_out - va_in) ** 2).sum() + ((va_out - vb_in) ** 2).sum())
+        stay[t] = ((va_out - va_in) ** 2).sum(1) + ((vb_out - vb_in) ** 2).sum(1)
+        swap[t] = ((vb_out - va_in) ** 2).sum(1) + ((va_out - vb_in) ** 2).sum(1)
     return stay, swap
 
 

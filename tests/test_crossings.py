@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import torch
+from conftest import smoke_config
 
 from s3o_warp.crossings import (
     LimbPair,
@@ -30,6 +31,8 @@ def test_exchange_costs_against_loops():
         st = np.sum((v["a"][1] - v["a"][0]) ** 2) + np.sum((v["b"][1] - v["b"][0]) ** 2)
         sw = np.sum((v["b"][1] - v["a"][0]) ** 2) + np.sum((v["a"][1] - v["b"][0]) ** 2)
         assert stay[t] == pytest.approx(st) and swap[t] == pytest.approx(sw)
+    stay, swap = exchange_costs(pa[:7], pb[:7], k)  # too short for a window on both sides
+    assert np.isinf(stay).all() and np.isinf(swap).all() and len(stay) == 6
 
 
 def test_bouncing_feet_swing_through():
@@ -125,21 +128,7 @@ def test_resolve_crossings_in_place():
 # -- in the fit ---------------------------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def tiny_sequence(tmp_path_factory):
-    from s3o_warp.synth import make_sequence
-
-    out = tmp_path_factory.mktemp("seq") / "quad"
-    make_sequence(out, frames=8, size=(96, 72), azim=(-15.0, 15.0), seed=0, progress=False)
-    return out
-
-
-def _cfg(**over):
-    from s3o_warp.config import make_config
-
-    base = {"data.crop_size": 64, "motion.batch_frames": 4, "output.render_video": False}
-    base.update(over)
-    return make_config("smoke", overrides=[f"{k}={v}" for k, v in base.items()])
+_cfg = smoke_config  # tiny_sequence: conftest.py
 
 
 def test_lift_gives_mirrored_limb_pairs(tiny_sequence, tmp_path):
