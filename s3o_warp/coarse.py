@@ -23,8 +23,10 @@ from s3o_warp.coarse_skeleton import (
     CoarseSettings,
     Skeleton2D,
     canonical_frame,
+    leg_pairs,
     part_masks,
     skeleton_2d,
+    symmetric_pairs,
 )
 
 __all__ = [
@@ -39,7 +41,9 @@ __all__ = [
     "ellipsoid_field",
     "ellipsoid_union_mesh",
     "init_bones",
+    "leg_pairs",
     "lift_to_3d",
     "part_masks",
     "skeleton_2d",
+    "symmetric_pairs",
 ]

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from s3o_warp.coarse_skeleton import ENDPOINT, CoarseSettings, Skeleton2D
+from s3o_warp.coarse_skeleton import ENDPOINT, CoarseSettings, Skeleton2D, symmetric_pairs
 from s3o_warp.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -138,39 +138,6 @@ def _frame_of_axis(a: np.ndarray) -> np.ndarray:
     return np.stack([a, b, c], axis=1)
 
 
-def _symmetric_pairs(skel: Skeleton2D, s: CoarseSettings) -> list[tuple[int, int]]:
-    """Leaf-edge pairs at one junction with similar length, radius and 2D direction (greedy, best first)."""
-    pairs = []
-    deg = skel.degree()
-    cos_max = np.cos(np.deg2rad(s.sym_max_angle_deg))
-    for j in skel.junctions:
-        leaves = []
-        for e, (u, v) in enumerate(skel.edges):
-            if j in (u, v):
-                o = v if u == j else u
-                if o != j and skel.node_type[o] == ENDPOINT and deg[o] == 1:
-                    d = skel.nodes[o] - skel.nodes[j]
-                    leaves.append((e, o, d / max(np.linalg.norm(d), 1e-9)))
-        cands = []
-        for i in range(len(leaves)):
-            for k in range(i + 1, len(leaves)):
-                (e1, _, d1), (e2, _, d2) = leaves[i], leaves[k]
-                lr = max(skel.edge_length[e1], skel.edge_length[e2]) / max(
-                    min(skel.edge_length[e1], skel.edge_length[e2]), 1e-9)
-                rr = max(skel.edge_radius[e1], skel.edge_radius[e2]) / max(
-                    min(skel.edge_radius[e1], skel.edge_radius[e2]), 1e-9)
-                cos = float(np.dot(d1, d2))
-                if lr <= s.sym_length_ratio and rr <= s.sym_radius_ratio and cos >= cos_max:
-                    score = abs(np.log(lr)) + abs(np.log(rr)) + np.arccos(np.clip(cos, -1, 1)) / np.pi
-                    cands.append((score, e1, e2))
-        used: set[int] = set()
-        for _, e1, e2 in sorted(cands):
-            if e1 not in used and e2 not in used:
-                used |= {e1, e2}
-                pairs.append((min(e1, e2), max(e1, e2)))
-    return pairs
-
-
 def lift_to_3d(skel: Skeleton2D, K, depth: float, settings: CoarseSettings | None = None) -> Coarse3D:
     """Lift the canonical frame's 2D skeleton to 3D nodes and one ellipsoid per edge.
 
@@ -223,7 +190,7 @@ def lift_to_3d(skel: Skeleton2D, K, depth: float, settings: CoarseSettings | Non
     C = depth * (Kinv @ np.array([centre_px[0], centre_px[1], 1.0]))
     dz = s.dz_fraction * torso_r_px * depth / f
 
-    pairs = _symmetric_pairs(skel, s)
+    pairs = symmetric_pairs(skel, s)
     node_z = np.zeros(len(skel.nodes))
     for e1, e2 in pairs:
         for e, sign in ((e1, -1.0), (e2, 1.0)):

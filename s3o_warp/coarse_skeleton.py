@@ -56,6 +56,13 @@ class CoarseSettings(SettingsReplace):
     """Merge two junctions joined by an edge when closer than merge_factor x the larger radius (Hi-LASSIE: 0.8)."""
     canonical_size: int = 320
     """canonical_frame() shrinks each mask so its longer side is at most this many pixels (speed); 0 = as is."""
+    canonical_tolerance: float = 0.9
+    """canonical_frame(): frames whose extent ratio is at least this x the best one's compete on how many leg
+    pairs they show (the most wins, then the ratio): a side view where paired legs are apart, so the lift
+    pairs them; 1 = the most horizontal frame only (the paper's rule)."""
+    leg_band: float = 0.15
+    """A symmetric limb pair counts as legs when both its ends lie in the lowest leg_band of the 2D skeleton's
+    vertical extent (feet on the ground, not a tail or ears)."""
     sym_length_ratio: float = 2.0
     """Two leaf edges of one junction may be a symmetric limb pair if longer / shorter length <= this."""
     sym_radius_ratio: float = 1.6
@@ -100,6 +107,9 @@ class CoarseSettings(SettingsReplace):
                 raise ConfigError(f"coarse.{name} must be >= 1 (a max/min ratio), got {getattr(self, name)}")
         if not 0 < self.sym_max_angle_deg <= 180:
             raise ConfigError(f"coarse.sym_max_angle_deg must be in (0, 180], got {self.sym_max_angle_deg}")
+        for name in ("canonical_tolerance", "leg_band"):
+            if not 0 < getattr(self, name) <= 1:
+                raise ConfigError(f"coarse.{name} must be in (0, 1], got {getattr(self, name)}")
         if self.target_vertices < 100:
             raise ConfigError(f"coarse.target_vertices must be >= 100, got {self.target_vertices}")
         if not 0 < self.vertex_tolerance < 1:
@@ -497,18 +507,73 @@ def skeleton_2d(mask, settings: CoarseSettings | None = None, *, prune_factor: f
     return sk
 
 
+def symmetric_pairs(skel: Skeleton2D, s: CoarseSettings) -> list[tuple[int, int]]:
+    """Leaf-edge pairs at one junction with similar length, radius and 2D direction (greedy, best first)."""
+    pairs = []
+    deg = skel.degree()
+    cos_max = np.cos(np.deg2rad(s.sym_max_angle_deg))
+    for j in skel.junctions:
+        leaves = []
+        for e, (u, v) in enumerate(skel.edges):
+            if j in (u, v):
+                o = v if u == j else u
+                if o != j and skel.node_type[o] == ENDPOINT and deg[o] == 1:
+                    d = skel.nodes[o] - skel.nodes[j]
+                    leaves.append((e, o, d / max(np.linalg.norm(d), 1e-9)))
+        cands = []
+        for i in range(len(leaves)):
+            for k in range(i + 1, len(leaves)):
+                (e1, _, d1), (e2, _, d2) = leaves[i], leaves[k]
+                lr = max(skel.edge_length[e1], skel.edge_length[e2]) / max(
+                    min(skel.edge_length[e1], skel.edge_length[e2]), 1e-9)
+                rr = max(skel.edge_radius[e1], skel.edge_radius[e2]) / max(
+                    min(skel.edge_radius[e1], skel.edge_radius[e2]), 1e-9)
+                cos = float(np.dot(d1, d2))
+                if lr <= s.sym_length_ratio and rr <= s.sym_radius_ratio and cos >= cos_max:
+                    score = abs(np.log(lr)) + abs(np.log(rr)) + np.arccos(np.clip(cos, -1, 1)) / np.pi
+                    cands.append((score, e1, e2))
+        used: set[int] = set()
+        for _, e1, e2 in sorted(cands):
+            if e1 not in used and e2 not in used:
+                used |= {e1, e2}
+                pairs.append((min(e1, e2), max(e1, e2)))
+    return pairs
+
+
+def leg_pairs(skel: Skeleton2D, s: CoarseSettings, pairs: list[tuple[int, int]] | None = None) -> int:
+    """How many symmetric limb pairs look like legs: both leaf ends in the lowest ``leg_band`` of the skeleton.
+
+    Image rows grow downwards, so "lowest" is the largest y; a side view of an animal on the ground has
+    its feet there, a tail or ears end higher up.
+    """
+    pairs = symmetric_pairs(skel, s) if pairs is None else pairs
+    if not pairs or not skel.paths:
+        return 0
+    y = skel.pixels()[:, 1]
+    floor = y.max() - s.leg_band * (np.ptp(y) + 1.0)
+    n = 0
+    for e1, e2 in pairs:
+        ends = [u if skel.node_type[u] == ENDPOINT else v for u, v in (skel.edges[e1], skel.edges[e2])]
+        n += all(skel.nodes[u][1] >= floor for u in ends)
+    return n
+
+
 # --------------------------------------------------------------------------------------------------
 # canonical frame and part masks
 
 
 def canonical_frame(masks: Sequence | np.ndarray, settings: CoarseSettings | None = None,
                     *, progress: bool = True) -> tuple[int, np.ndarray]:
-    """The frame whose 2D skeleton is the most horizontal (S3O's canonical, side-view frame).
+    """A side-view frame whose 2D skeleton is nearly the most horizontal and shows the most leg pairs.
 
     The ratio of a frame is :meth:`Skeleton2D.extent_ratio`: the bounding box of every skeleton pixel
     of the kept graph (edge paths), width / height with both extents counted inclusively in pixels,
     ``(x_max - x_min + 1) / (y_max - y_min + 1)``, computed on the mask shrunk (area interpolation,
     > 0.5) so its longer side is at most ``canonical_size`` pixels. An empty mask gets ratio 0.
+    S3O takes the frame with the highest ratio. Here every frame with a ratio of at least
+    ``canonical_tolerance`` x the highest competes on :func:`leg_pairs` (the most wins, then the ratio):
+    a walking animal's most horizontal frame often shows a pair of legs overlapping, and the lift can
+    only place legs it sees apart on either side of the body (``canonical_tolerance=1`` is S3O's rule).
 
     Args:
         masks: T masks, a list of (H, W) arrays or a (T, H, W) array (bool, or uint8 > 127).
@@ -516,7 +581,7 @@ def canonical_frame(masks: Sequence | np.ndarray, settings: CoarseSettings | Non
         progress: show a tqdm bar.
 
     Returns:
-        (index of the frame with the highest ratio (the first on ties), (T,) float64 ratios).
+        (index of the chosen frame (the first on ties), (T,) float64 ratios).
 
     Raises:
         InputError: no masks, or every mask is empty.
@@ -525,16 +590,23 @@ def canonical_frame(masks: Sequence | np.ndarray, settings: CoarseSettings | Non
     if len(masks) == 0:
         raise InputError("canonical_frame(): got no masks; pass the sequence's masks (T >= 1)")
     ratios = np.zeros(len(masks), np.float64)
+    skels: list[Skeleton2D | None] = [None] * len(masks)
     for t in tqdm(range(len(masks)), desc="canonical frame", disable=not progress, leave=False):
         m = np.asarray(masks[t])
         if not np.any(m):
             log.warning("canonical_frame: mask %d is empty; its ratio is 0", t)
             continue
-        ratios[t] = skeleton_2d(_shrink(m, s.canonical_size), s).extent_ratio()
+        skels[t] = skeleton_2d(_shrink(m, s.canonical_size), s)
+        ratios[t] = skels[t].extent_ratio()
     if not np.any(ratios > 0):
         raise InputError("canonical_frame(): every mask is empty; check the masks folder (foreground = value > 127)")
-    best = int(np.argmax(ratios))
-    log.info("canonical frame %d (horizontal/vertical skeleton extent %.3f)", best, ratios[best])
+    top = int(np.argmax(ratios))
+    cands = np.flatnonzero(ratios >= s.canonical_tolerance * ratios[top])
+    legs = {int(t): leg_pairs(skels[t], s) for t in cands}
+    best = max(cands, key=lambda t: (legs[int(t)], ratios[t], -t))
+    best = int(best)
+    log.info("canonical frame %d (horizontal/vertical skeleton extent %.3f, %d leg pairs; the most horizontal: "
+             "frame %d, %.3f, %d leg pairs)", best, ratios[best], legs[best], top, ratios[top], legs[top])
     return best, ratios
 
 
