@@ -61,8 +61,8 @@ class CoarseSettings(SettingsReplace):
     pairs they show (the most wins, then the ratio): a side view where paired legs are apart, so the lift
     pairs them; 1 = the most horizontal frame only (the paper's rule)."""
     leg_band: float = 0.15
-    """A symmetric limb pair counts as legs when both its ends lie in the lowest leg_band of the 2D skeleton's
-    vertical extent (feet on the ground, not a tail or ears)."""
+    """A symmetric limb pair counts as legs when one of its ends lies in the lowest leg_band of the 2D skeleton's
+    vertical extent (a foot on the ground, not a tail or ears)."""
     sym_length_ratio: float = 2.0
     """Two leaf edges of one junction may be a symmetric limb pair if longer / shorter length <= this."""
     sym_radius_ratio: float = 1.6
@@ -541,10 +541,10 @@ def symmetric_pairs(skel: Skeleton2D, s: CoarseSettings) -> list[tuple[int, int]
 
 
 def leg_pairs(skel: Skeleton2D, s: CoarseSettings, pairs: list[tuple[int, int]] | None = None) -> int:
-    """How many symmetric limb pairs look like legs: both leaf ends in the lowest ``leg_band`` of the skeleton.
+    """How many symmetric limb pairs look like legs: a leaf end in the lowest ``leg_band`` of the skeleton.
 
-    Image rows grow downwards, so "lowest" is the largest y; a side view of an animal on the ground has
-    its feet there, a tail or ears end higher up.
+    Image rows grow downwards, so "lowest" is the largest y. A walking animal seen from the side has at
+    least one foot of a leg pair on the ground (the other may be lifted); ears and tails end higher up.
     """
     pairs = symmetric_pairs(skel, s) if pairs is None else pairs
     if not pairs or not skel.paths:
@@ -554,7 +554,7 @@ def leg_pairs(skel: Skeleton2D, s: CoarseSettings, pairs: list[tuple[int, int]] 
     n = 0
     for e1, e2 in pairs:
         ends = [u if skel.node_type[u] == ENDPOINT else v for u, v in (skel.edges[e1], skel.edges[e2])]
-        n += all(skel.nodes[u][1] >= floor for u in ends)
+        n += any(skel.nodes[u][1] >= floor for u in ends)
     return n
 
 

@@ -23,9 +23,11 @@ from s3o_warp.coarse import (
     ellipsoid_field,
     ellipsoid_union_mesh,
     init_bones,
+    leg_pairs,
     lift_to_3d,
     part_masks,
     skeleton_2d,
+    symmetric_pairs,
 )
 from s3o_warp.errors import ConfigError, InputError
 
@@ -35,10 +37,13 @@ TAIL = (38, 82)
 K = np.array([[310.0, 0.0, 150.0], [0.0, 290.0, 128.0], [0.0, 0.0, 1.0]])
 
 
-def quadruped(h: int = 240, w: int = 320) -> np.ndarray:
+def quadruped(h: int = 240, w: int = 320, front_overlap: bool = False) -> np.ndarray:
+    """front_overlap: both front legs drawn to one foot (a side view where they hide each other)."""
     m = np.zeros((h, w), np.uint8)
     cv2.ellipse(m, (160, 115), (75, 32), 0, 0, 360, 1, -1)
     for hip_x, (fa, fb) in ((108, FEET[:2]), (212, FEET[2:])):
+        if front_overlap and hip_x == 212:
+            fa = fb = ((fa[0] + fb[0]) // 2, fa[1])
         cv2.line(m, (hip_x, 125), fa, 1, 14)
         cv2.line(m, (hip_x, 125), fb, 1, 14)
     cv2.line(m, (222, 100), (262, 62), 1, 18)
@@ -212,6 +217,37 @@ def test_canonical_frame_picks_side_view(quad):
     np.testing.assert_allclose(r_small, ratios, rtol=0.15)
     with pytest.raises(InputError, match="every mask is empty"):
         canonical_frame([np.zeros((8, 8), bool)], progress=False)
+
+
+def test_leg_pairs_are_symmetric_pairs_ending_low(quad):
+    m, sk = quad
+    pairs = symmetric_pairs(sk, CoarseSettings())
+    assert len(pairs) == 2 and leg_pairs(sk, CoarseSettings()) == 2
+    # upside down the same pairs end at the top (like ears): still symmetric, not legs
+    up = skeleton_2d(m[::-1])
+    assert len(symmetric_pairs(up, CoarseSettings())) == 2 and leg_pairs(up, CoarseSettings()) == 0
+    # overlapping front legs leave one pair
+    assert leg_pairs(skeleton_2d(quadruped(front_overlap=True)), CoarseSettings()) == 1
+
+
+def test_canonical_frame_prefers_legs_apart_among_near_side_views():
+    """The most horizontal frame hides a leg; a frame 0.95x as horizontal shows all four apart."""
+    def framed(m):
+        big = np.zeros((320, 320), bool)
+        big[40:280] = m
+        return big
+
+    hidden, apart = framed(quadruped(front_overlap=True)), _warp(framed(quadruped()), 0, 0.95)
+    frames = [_warp(hidden, 90), hidden, apart]
+    t, ratios = canonical_frame(frames, progress=False)
+    assert ratios[1] > ratios[2] > 0.9 * ratios[1]
+    assert t == 2
+    # tolerance 1 is S3O's rule (the most horizontal); a clearly less horizontal frame does not compete
+    assert canonical_frame(frames, CoarseSettings(canonical_tolerance=1.0), progress=False)[0] == 1
+    squeezed = [_warp(hidden, 90), hidden, _warp(framed(quadruped()), 0, 0.8)]
+    assert canonical_frame(squeezed, progress=False)[0] == 1
+    with pytest.raises(ConfigError, match="canonical_tolerance"):
+        CoarseSettings(canonical_tolerance=0.0)
 
 
 def test_part_masks_cover_foreground_once_and_nearest(quad):
