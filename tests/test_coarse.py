@@ -239,7 +239,7 @@ def test_leg_pairs_are_symmetric_pairs_ending_low(quad):
 def test_collapse_leg_forks_gives_two_whole_legs():
     """Front legs overlapping down to the knee (and the hind pair's fork just below the torso): each pair
     starts at its body junction afterwards, one whole edge per leg."""
-    s = CoarseSettings()
+    s = CoarseSettings(collapse_forks=True)
     sk = skeleton_2d(quadruped(front_knee=True))
     assert len(symmetric_pairs(sk, s)) == 2
     out, cover = collapse_leg_forks(sk, s)
@@ -261,8 +261,8 @@ def test_collapse_leg_forks_gives_two_whole_legs():
     # the front legs now hang from the shoulder, above the knee
     front = [e for e in legs if out.nodes[out.edges[e][1]][0] > 160]
     assert len(front) == 2 and all(out.nodes[out.edges[e][0]][1] < 140 for e in front)
-    # switched off, or a shared edge thicker than fork_radius_ratio x the legs: unchanged
-    same, cov = collapse_leg_forks(sk, s.replace(collapse_forks=False))
+    # switched off (the default), or a shared edge thicker than fork_radius_ratio x the legs: unchanged
+    same, cov = collapse_leg_forks(sk, CoarseSettings())
     assert same is sk and cov == [[e] for e in range(len(sk.edges))]
     assert collapse_leg_forks(sk, s.replace(fork_radius_ratio=1.0))[0] is sk
     with pytest.raises(ConfigError, match="fork_radius_ratio"):

@@ -73,8 +73,8 @@ def _check_skeleton_shape(run, sequence, metrics):
     hip -> foot) has a learned joint within 8 % of the bounding-box diagonal of its ground-truth chain, and
     the tail and the head (nose) within 10 % (measured on this CI fit: median 2-6 joints per leg at 8 %,
     1 for the tail and the nose at 10 %). And the skeleton sits inside the body: at least 85 % of the
-    (frame, joint) pairs are inside the posed mesh (measured on this 8-frame fit, seeds 0 and 1: 0.885 and
-    0.98; without ``coarse.init.collapse_forks``, 0.93 and 0.91: one joint outside in one frame moves it by 0.01).
+    (frame, joint) pairs are inside the posed mesh (measured on this 8-frame fit, seeds 0 and 1: 0.93 and
+    0.91; with ``coarse.init.collapse_forks``, 0.885 and 0.98: one joint outside in one frame moves it by 0.01).
     """
     from s3o_warp import metrics as M
 
