@@ -15,7 +15,14 @@ Typical use::
     bones = init_bones(coarse)                      # Gaussian bones, kinematic tree, joints
 """
 
-from s3o_warp.coarse_lift import Bones, Coarse3D, ellipsoid_field, ellipsoid_union_mesh, init_bones, lift_to_3d
+from s3o_warp.coarse_lift import (
+    Bones,
+    Coarse3D,
+    ellipsoid_field,
+    ellipsoid_union_mesh,
+    init_bones,
+    lift_to_3d,
+)
 from s3o_warp.coarse_skeleton import (
     ENDPOINT,
     ISOLATED,
@@ -23,7 +30,6 @@ from s3o_warp.coarse_skeleton import (
     CoarseSettings,
     Skeleton2D,
     canonical_frame,
-    collapse_leg_forks,
     leg_pairs,
     part_masks,
     skeleton_2d,
@@ -39,7 +45,6 @@ __all__ = [
     "CoarseSettings",
     "Skeleton2D",
     "canonical_frame",
-    "collapse_leg_forks",
     "ellipsoid_field",
     "ellipsoid_union_mesh",
     "init_bones",

@@ -56,13 +56,6 @@ class CoarseSettings(SettingsReplace):
     """Merge two junctions joined by an edge when closer than merge_factor x the larger radius (Hi-LASSIE: 0.8)."""
     canonical_size: int = 320
     """canonical_frame() shrinks each mask so its longer side is at most this many pixels (speed); 0 = as is."""
-    collapse_forks: bool = False
-    """collapse_leg_forks(): two paired legs that part only below a shared upper segment (the far leg hidden
-    behind the near one down to the knee) become two whole legs from the body junction, so each leg is one
-    limb of its own instead of one upper bone driving both. Off by default: on DAVIS cows it changed the
-    camera hypothesis one seed picked and cost that seed 13 PCK-T points (README)."""
-    fork_radius_ratio: float = 2.5
-    """... when that shared segment's mean radius is at most this x the pair's (a leg, not the torso)."""
     canonical_tolerance: float = 0.9
     """canonical_frame(): frames whose extent ratio is at least this x the best one's compete on how many leg
     pairs they show (the most wins, then the ratio): a side view where paired legs are apart, so the lift
@@ -114,8 +107,6 @@ class CoarseSettings(SettingsReplace):
                 raise ConfigError(f"coarse.{name} must be >= 1 (a max/min ratio), got {getattr(self, name)}")
         if not 0 < self.sym_max_angle_deg <= 180:
             raise ConfigError(f"coarse.sym_max_angle_deg must be in (0, 180], got {self.sym_max_angle_deg}")
-        if self.fork_radius_ratio < 1:
-            raise ConfigError(f"coarse.fork_radius_ratio must be >= 1 (a max/min ratio), got {self.fork_radius_ratio}")
         for name in ("canonical_tolerance", "leg_band"):
             if not 0 < getattr(self, name) <= 1:
                 raise ConfigError(f"coarse.{name} must be in (0, 1], got {getattr(self, name)}")
@@ -549,71 +540,6 @@ def symmetric_pairs(skel: Skeleton2D, s: CoarseSettings) -> list[tuple[int, int]
     return pairs
 
 
-def collapse_leg_forks(skel: Skeleton2D, s: CoarseSettings) -> tuple[Skeleton2D, list[list[int]]]:
-    """Two whole legs where a symmetric pair forks off a shared upper segment (``collapse_forks``).
-
-    Seen from the side, the far leg often hides behind the near one down to the knee: the 2D skeleton
-    then has one upper-leg edge from a body junction J to a fork j, and the pair of lower legs below j.
-    Lifted as is, one bone would drive both upper legs. When j has exactly three edges, J is a junction
-    too (not the root's own fork: j is not the root) and the upper edge's mean radius is at most
-    ``fork_radius_ratio`` x the pair's, node j and the upper edge go: each lower leg becomes one edge
-    from J (its path = the upper path, then its own), radius the length-weighted mean of the two.
-
-    Returns:
-        (the new Skeleton2D, for each new edge the old edges it covers, in path order), so per-edge data
-        of the old graph (part masks) can be carried over; unchanged when there is no such fork.
-    """
-    if not s.collapse_forks:
-        return skel, [[e] for e in range(len(skel.edges))]
-    deg = skel.degree()
-    drop_nodes, drop_edges, new_edge = set(), set(), {}
-    for e1, e2 in symmetric_pairs(skel, s):
-        j = int(np.intersect1d(skel.edges[e1], skel.edges[e2])[0])
-        if deg[j] != 3 or j == skel.root or j in drop_nodes:
-            continue
-        (up,) = [e for e, (u, v) in enumerate(skel.edges) if j in (u, v) and e not in (e1, e2)]
-        J = int(skel.edges[up][1] if skel.edges[up][0] == j else skel.edges[up][0])
-        if J == j or skel.node_type[J] != JUNCTION or J in drop_nodes:
-            continue
-        r_pair = 0.5 * (skel.edge_radius[e1] + skel.edge_radius[e2])
-        if skel.edge_radius[up] > s.fork_radius_ratio * r_pair:
-            continue
-        p_up = skel.paths[up] if skel.edges[up][0] == J else skel.paths[up][::-1]  # J -> j
-        for e in (e1, e2):
-            u, v = skel.edges[e]
-            leaf, p_low = (v, skel.paths[e]) if u == j else (u, skel.paths[e][::-1])  # j -> leaf
-            path = np.concatenate([p_up, p_low[1:] if (p_low[0] == p_up[-1]).all() else p_low], axis=0)
-            lu, ll = skel.edge_length[up], skel.edge_length[e]
-            rad = (skel.edge_radius[up] * lu + skel.edge_radius[e] * ll) / max(lu + ll, 1e-9)
-            new_edge[e] = (J, int(leaf), path, rad, _Graph.length(path), [up, e])
-        drop_nodes.add(j)
-        drop_edges.add(up)
-        log.info("collapse_leg_forks: the legs of edges %d and %d now start at junction %d (shared edge %d gone)",
-                 e1, e2, J, up)
-    if not drop_nodes:
-        return skel, [[e] for e in range(len(skel.edges))]
-    keep_n = [n for n in range(len(skel.nodes)) if n not in drop_nodes]
-    index = {n: i for i, n in enumerate(keep_n)}
-    edges, paths, radius, length, cover = [], [], [], [], []
-    for e in range(len(skel.edges)):
-        if e in drop_edges:
-            continue
-        if e in new_edge:
-            J, leaf, path, rad, ln, old = new_edge[e]
-            edges.append((index[J], index[leaf]))
-        else:
-            path, rad, ln, old = skel.paths[e], skel.edge_radius[e], skel.edge_length[e], [e]
-            edges.append((index[int(skel.edges[e][0])], index[int(skel.edges[e][1])]))
-        paths.append(path)
-        radius.append(rad)
-        length.append(ln)
-        cover.append(old)
-    out = Skeleton2D(skel.nodes[keep_n].copy(), skel.node_radius[keep_n].copy(), skel.node_type[keep_n].copy(),
-                     np.array(edges, np.int64).reshape(-1, 2), paths, np.array(radius, np.float64),
-                     np.array(length, np.float64), index[skel.root] if skel.root >= 0 else -1, skel.shape)
-    return out, cover
-
-
 def leg_pairs(skel: Skeleton2D, s: CoarseSettings, pairs: list[tuple[int, int]] | None = None) -> int:
     """How many symmetric limb pairs look like legs: a leaf end in the lowest ``leg_band`` of the skeleton.
 
@@ -677,8 +603,7 @@ def canonical_frame(masks: Sequence | np.ndarray, settings: CoarseSettings | Non
     top = int(np.argmax(ratios))
     cands = np.flatnonzero(ratios >= s.canonical_tolerance * ratios[top])
     legs = {int(t): leg_pairs(skels[t], s) for t in cands}
-    best = max(cands, key=lambda t: (legs[int(t)], ratios[t], -t))
-    best = int(best)
+    best = max(legs, key=lambda t: (legs[t], ratios[t], -t))  # the first frame on ties
     log.info("canonical frame %d (horizontal/vertical skeleton extent %.3f, %d leg pairs; the most horizontal: "
              "frame %d, %.3f, %d leg pairs)", best, ratios[best], legs[best], top, ratios[top], legs[top])
     return best, ratios

@@ -189,8 +189,7 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
     masks = data.masks.cpu().numpy() > 0.5
     settings = cfg.coarse.init
     c, _ratios = coarse.canonical_frame(list(masks), settings, progress=False)
-    skel_raw = coarse.skeleton_2d(masks[c], settings)
-    skel, cover = coarse.collapse_leg_forks(skel_raw, settings)  # cover: new edge -> the raw edges it spans
+    skel = coarse.skeleton_2d(masks[c], settings)
     S = data.crop_size
     H, W = data.frame_size
     f_full = 0.5 * W / math.tan(math.radians(cfg.coarse.fov_degrees) / 2)
@@ -199,8 +198,7 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
     lifted = coarse.lift_to_3d(skel, Kc, cfg.coarse.depth, settings)
     verts, faces = coarse.ellipsoid_union_mesh(lifted, settings=settings)
     bones = coarse.init_bones(lifted, settings)
-    raw_parts = coarse.part_masks(masks[c], skel_raw)
-    parts = np.stack([raw_parts[old].any(0) for old in cover])  # a collapsed leg owns its shared upper segment too
+    parts = coarse.part_masks(masks[c], skel)
     limb_pairs = _limb_pairs(lifted, bones)
     T = data.num_frames
     root = np.asarray(lifted.root_transform, dtype=np.float64)

@@ -20,7 +20,6 @@ from s3o_warp.coarse import (
     JUNCTION,
     CoarseSettings,
     canonical_frame,
-    collapse_leg_forks,
     ellipsoid_field,
     ellipsoid_union_mesh,
     init_bones,
@@ -38,20 +37,15 @@ TAIL = (38, 82)
 K = np.array([[310.0, 0.0, 150.0], [0.0, 290.0, 128.0], [0.0, 0.0, 1.0]])
 
 
-def quadruped(h: int = 240, w: int = 320, front_overlap: bool = False, front_knee: bool = False) -> np.ndarray:
-    """front_overlap: both front legs drawn to one foot (a side view where they hide each other);
-    front_knee: the front legs overlap down to a knee and part below it."""
+def quadruped(h: int = 240, w: int = 320, front_overlap: bool = False) -> np.ndarray:
+    """front_overlap: both front legs drawn to one foot (a side view where they hide each other)."""
     m = np.zeros((h, w), np.uint8)
     cv2.ellipse(m, (160, 115), (75, 32), 0, 0, 360, 1, -1)
     for hip_x, (fa, fb) in ((108, FEET[:2]), (212, FEET[2:])):
-        top = (hip_x, 125)
         if front_overlap and hip_x == 212:
             fa = fb = ((fa[0] + fb[0]) // 2, fa[1])
-        if front_knee and hip_x == 212:
-            top = (212, 172)
-            cv2.line(m, (hip_x, 125), top, 1, 18)
-        cv2.line(m, top, fa, 1, 14)
-        cv2.line(m, top, fb, 1, 14)
+        cv2.line(m, (hip_x, 125), fa, 1, 14)
+        cv2.line(m, (hip_x, 125), fb, 1, 14)
     cv2.line(m, (222, 100), (262, 62), 1, 18)
     cv2.circle(m, HEAD, 17, 1, -1)
     cv2.line(m, (90, 105), TAIL, 1, 7)
@@ -234,39 +228,6 @@ def test_leg_pairs_are_symmetric_pairs_ending_low(quad):
     assert len(symmetric_pairs(up, CoarseSettings())) == 2 and leg_pairs(up, CoarseSettings()) == 0
     # overlapping front legs leave one pair
     assert leg_pairs(skeleton_2d(quadruped(front_overlap=True)), CoarseSettings()) == 1
-
-
-def test_collapse_leg_forks_gives_two_whole_legs():
-    """Front legs overlapping down to the knee (and the hind pair's fork just below the torso): each pair
-    starts at its body junction afterwards, one whole edge per leg."""
-    s = CoarseSettings(collapse_forks=True)
-    sk = skeleton_2d(quadruped(front_knee=True))
-    assert len(symmetric_pairs(sk, s)) == 2
-    out, cover = collapse_leg_forks(sk, s)
-    assert len(out.edges) == len(sk.edges) - 2 and len(out.nodes) == len(sk.nodes) - 2
-    assert sorted(len(c) for c in cover) == [1] * (len(out.edges) - 4) + [2] * 4
-    new_pairs = symmetric_pairs(out, s)
-    assert len(new_pairs) == 2
-    deg = out.degree()
-    legs = [e for e, c in enumerate(cover) if len(c) == 2]
-    for e in legs:
-        u, v = out.edges[e]
-        assert out.node_type[u] == JUNCTION and deg[v] == 1  # from a body junction to a foot
-        p = out.paths[e]
-        assert np.abs(np.diff(p, axis=0)).max() <= 3  # one chain from u to v (the halves meet at the fork's pixels)
-        assert np.linalg.norm(p[0] - out.nodes[u]) < 4 and np.linalg.norm(p[-1] - out.nodes[v]) < 4
-        up, low = cover[e]
-        np.testing.assert_allclose(out.edge_length[e], sk.edge_length[up] + sk.edge_length[low], rtol=0.05)
-        assert any(e in pr for pr in new_pairs)
-    # the front legs now hang from the shoulder, above the knee
-    front = [e for e in legs if out.nodes[out.edges[e][1]][0] > 160]
-    assert len(front) == 2 and all(out.nodes[out.edges[e][0]][1] < 140 for e in front)
-    # switched off (the default), or a shared edge thicker than fork_radius_ratio x the legs: unchanged
-    same, cov = collapse_leg_forks(sk, CoarseSettings())
-    assert same is sk and cov == [[e] for e in range(len(sk.edges))]
-    assert collapse_leg_forks(sk, s.replace(fork_radius_ratio=1.0))[0] is sk
-    with pytest.raises(ConfigError, match="fork_radius_ratio"):
-        CoarseSettings(fork_radius_ratio=0.5)
 
 
 def test_canonical_frame_prefers_legs_apart_among_near_side_views():
