@@ -152,6 +152,13 @@ class MotionConfig:
     bend the shape; the legs' paths through their crossings are settled there); None = ``w_flow``."""
     w_color: float = 0.2
     """Weight of the colour L1 loss."""
+    w_cover: float = 0.0
+    """Weight of the mask-coverage loss (``losses.coverage_loss``): every mask pixel the hard render leaves
+    uncovered pulls its nearest projected vertex (hidden ones included) towards it, from any distance."""
+    w_cover_warmup: float | None = None
+    """Weight of the coverage loss during the warm-up (mesh frozen: it moves bones, not vertices); None = ``w_cover``."""
+    cover_pixels: int = 256
+    """Uncovered mask pixels sampled per frame for the coverage loss (0 = all)."""
     resolve_crossings: bool = True
     """After the warm-up, let each symmetric limb pair of the lift swing through its crossings instead of
     bouncing back (frames relabelled where that keeps the feet's velocities, ``s3o_warp.crossings``); on

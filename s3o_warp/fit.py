@@ -24,6 +24,7 @@ from tqdm import tqdm
 from s3o_warp import losses as L
 from s3o_warp.config import Config, save_toml, to_dict
 from s3o_warp.errors import ConfigError, InputError
+from s3o_warp.geometry import project
 from s3o_warp.large_steps import Adam
 from s3o_warp.model import ModelInit, S3OModel
 
@@ -514,6 +515,10 @@ class Fitter:
         if mc.w_color > 0:
             col = interpolate(m.colors(), m.faces, face_index, bary)
             terms["color"] = (mc.w_color, L.color_loss(col, d.images[frames], fg * mask))
+        w_cover = mc.w_cover_warmup if self.phase == "warmup" and mc.w_cover_warmup is not None else mc.w_cover
+        if w_cover > 0:
+            uncovered = (mask > 0.5) & (face_index < 0)
+            terms["cover"] = (w_cover, L.coverage_loss(project(verts, K), uncovered, mc.cover_pixels))
         w_flow = mc.w_flow_warmup if self.phase == "warmup" and mc.w_flow_warmup is not None else mc.w_flow
         if w_flow > 0 and len(frames) > 1:
             vflow = L.vertex_flow_crop(verts, K)

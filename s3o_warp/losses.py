@@ -22,6 +22,34 @@ def silhouette_loss(sil: torch.Tensor, mask: torch.Tensor, frame_weight: torch.T
     return (per_frame * frame_weight).sum() / frame_weight.sum().clamp_min(1e-6)
 
 
+def coverage_loss(
+    proj: torch.Tensor, uncovered: torch.Tensor, max_pixels: int = 0, generator: torch.Generator | None = None
+) -> torch.Tensor:
+    """Mask coverage: each mask pixel the render leaves uncovered pulls its nearest projected vertex to it.
+
+    ``proj`` ``(t,N,2)`` projected vertices in crop pixels (all of them, hidden ones included: a leg hidden
+    behind its pair is what an uncovered patch of mask most often wants), ``uncovered`` ``(t,S,S)`` bool.
+    Returns ``sum_p |p - proj[nearest(p)]| / (t S^2)`` in crop pixels per crop pixel: unlike the soft
+    silhouette, whose gradient reaches only about sigma pixels past the outline, this one pulls from any
+    distance. ``max_pixels`` > 0 keeps a random sample of at most that many pixels per frame on average
+    (rescaled, so the expected value is unchanged).
+    """
+    from s3o_warp.kernels.nearest import nearest_point
+
+    t, S = uncovered.shape[0], uncovered.shape[-1]
+    idx = uncovered.nonzero()  # (Q, 3): frame, row, column
+    total = idx.shape[0]
+    if total == 0:
+        return proj.sum() * 0
+    if max_pixels > 0 and total > max_pixels * t:
+        keep = torch.randperm(total, device=idx.device, generator=generator)[: max_pixels * t]
+        idx = idx[keep]
+    q = idx[:, [2, 1]].to(proj.dtype)
+    nearest = nearest_point(q.float(), idx[:, 0], proj.detach().float())
+    d = (proj[idx[:, 0], nearest] - q).norm(dim=-1)
+    return d.sum() * (total / idx.shape[0]) / (t * S * S)
+
+
 def soft_iou(sil: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Hard IoU of ``sil > 0.5`` against ``mask > 0.5`` per frame ``(t,)`` (for progress reporting)."""
     a = sil > 0.5
