@@ -465,3 +465,31 @@ def test_cli_fits_a_video_file_with_a_mask_folder(tiny_sequence, tmp_path):
     assert m["mask_iou"]["mean"] > 0.3 and m["pck_t"] is not None  # masks and keypoints beside the mask folder
     assert np.load(run / "motion.npz")["fps"] == pytest.approx(12.0)
     assert (run / "renders" / "overlay.mp4").is_file() or (run / "renders" / "overlay.gif").is_file()
+
+
+def test_coverage_term_follows_its_weights_and_pulls_the_bones(tiny_sequence, tmp_path):
+    """motion.w_cover adds the coverage term (its own warm-up weight wins there) and its gradient reaches the motion."""
+    from s3o_warp import losses as L
+    from s3o_warp.geometry import project
+    from s3o_warp.kernels.raster import rasterize
+
+    cfg = _cfg(**{"coarse.steps": 2, "motion.w_cover": 0.5, "motion.w_cover_warmup": 0.0, "motion.cover_pixels": 0})
+    data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
+    f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
+    frames = torch.arange(0, 3)
+    f.phase = "warmup"
+    assert "cover" not in f.motion_losses(frames)[0]
+    f.phase = "joint"
+    terms = f.motion_losses(frames)[0]
+    w, v = terms["cover"]
+    assert w == 0.5
+    m, S = f.model, data.crop_size
+    with torch.no_grad():
+        verts = m(frames)
+        K = m.intrinsics_crop(frames)
+        fi, _, _ = rasterize(verts, m.faces, K, (S, S))
+        uncovered = (data.masks[frames] > 0.5) & (fi < 0)
+        assert uncovered.any()  # the coarse shape does not cover every frame's mask yet
+        assert float(v) == pytest.approx(float(L.coverage_loss(project(verts, K), uncovered)), rel=1e-5)
+    v.backward()
+    assert float(m.root_t.grad.abs().sum()) > 0 or float(m.bone_aa.grad.abs().sum()) > 0
