@@ -163,6 +163,18 @@ def main(argv=None) -> int:
     pv = {"N": int(v4.shape[0]), "F": int(f4.shape[0]), "T": 8}
     add("vertex_visibility", pv, "warp_bvh_refit", lambda: visibility.vertex_visibility(vis_v, f4))
 
+    # --- nearest projected vertex per uncovered pixel (the coverage loss): Q = 256 x 8, N ~ 2562, T = 8 ---
+    from s3o_warp.kernels import nearest
+    from s3o_warp.reference import nearest as rnear
+
+    g = torch.Generator().manual_seed(0)
+    pts = (torch.rand(8, int(v4.shape[0]), 2, generator=g) * 192).to(dev)
+    qs = (torch.rand(256 * 8, 2, generator=g) * 192).to(dev)
+    qf = torch.arange(8).repeat_interleave(256).to(dev)
+    pn = {"Q": int(qs.shape[0]), "N": int(pts.shape[1]), "T": 8}
+    add("nearest_point", pn, "warp_brute_force", lambda: nearest.nearest_point(qs, qf, pts))
+    add("nearest_point", pn, "torch_dense_twin", lambda: rnear.nearest_point_reference(qs, qf, pts))
+
     out = {
         "command": " ".join([Path(sys.executable).name] + sys.argv),
         "device": dev,
