@@ -69,7 +69,8 @@ def nearest_point(queries: torch.Tensor, query_frame: torch.Tensor, points: torc
         return out.long()
     if points.shape[1] == 0:
         raise ValueError(f"{name}(): points has no candidates (shape {tuple(points.shape)})")
-    fmin, fmax = int(query_frame.min()), int(query_frame.max())
+    lo_hi = torch.stack(torch.aminmax(query_frame)).tolist()  # one device sync for the range check
+    fmin, fmax = int(lo_hi[0]), int(lo_hi[1])
     if fmin < 0 or fmax >= points.shape[0]:
         raise ValueError(f"{name}(): query_frame must lie in [0, {points.shape[0]}), got [{fmin}, {fmax}]")
     qf = query_frame.to(torch.int32).contiguous()
