@@ -160,6 +160,10 @@ class MotionConfig:
     """Weight of the coverage loss during the warm-up (mesh frozen: it moves bones, not vertices); None = ``w_cover``."""
     cover_pixels: int = 256
     """Uncovered mask pixels sampled per frame for the coverage loss (0 = all)."""
+    w_joint: float = 0.0
+    """Weight of the joint-attachment loss (``losses.joint_attachment_loss``, not in the paper): each joint of
+    the kinematic tree, moved by either of its two bones, lands in the same place (squared gap over the
+    object's size squared), so a leg swings about its hip instead of sliding across the body."""
     resolve_crossings: bool = True
     """After the warm-up, let each symmetric limb pair of the lift swing through its crossings instead of
     bouncing back (frames relabelled where that keeps the feet's velocities, ``s3o_warp.crossings``); on
@@ -167,8 +171,14 @@ class MotionConfig:
     crossing_recheck: bool = True
     """Relabel once more after the first epoch of the joint phase (before the first M-step changes the
     bones), when the legs fit better than after the warm-up."""
-    crossing_max_gap: float = 0.5
-    """Two limbs' paths may be exchanged only where their ends are at most this x the limb length apart."""
+    crossing_max_gap: float = 0.8
+    """Two limbs' paths may be exchanged only where their ends are at most this x the limb length apart (in
+    the image: x the limbs' mean projected length)."""
+    crossing_space: str = "image"
+    """Where the crossing step compares the paired feet's paths: image (their projections: the feet cross where
+    the pictures show it, whatever depth the fit gave them; Fox PCK-T 83.3 -> 88.8) or object (their 3D paths,
+    one mirrored onto the other's side: a warm-up that slides a leg sideways instead of swinging it hides
+    the crossing)."""
     crossing_window: int = 2
     """Frames over which the feet's velocities before and after a crossing are measured."""
     crossing_ratio: float = 0.75

@@ -129,10 +129,15 @@ def exchanged_motion(A_o: np.ndarray, b_o: np.ndarray, top_self, end_self, top_o
 
 @torch.no_grad()
 def resolve_crossings(bone_aa: torch.Tensor, bone_t: torch.Tensor, centres: torch.Tensor, pairs: list[LimbPair],
-                      anchor: int, max_gap: float = 0.5, window: int = 2, ratio: float = 0.75) -> list[int]:
+                      anchor: int, max_gap: float = 0.5, window: int = 2, ratio: float = 0.75,
+                      project=None) -> list[int]:
     """Relabel every pair's frames (:func:`crossing_labels` on the posed end points, exchanges allowed where
     they are at most ``max_gap`` x the mean rest length of the two limbs apart) and write the exchanged
-    frames' motion in place (:func:`exchanged_motion`). Returns the number of exchanged frames per pair."""
+    frames' motion in place (:func:`exchanged_motion`). Returns the number of exchanged frames per pair.
+
+    ``project``: optional map of object-frame points ``(T, 3)`` to image pixels ``(T, 2)``; given, the
+    labels come from the ends' image paths (unmirrored: where the feet cross in the image, whatever depth
+    the fit gave them) and ``max_gap`` is relative to the limbs' mean projected length."""
     T = bone_aa.shape[0]
     R_all = axis_angle_to_matrix(bone_aa.detach().reshape(-1, 3).double()).reshape(T, -1, 3, 3).cpu().numpy()
     t_all = bone_t.detach().double().cpu().numpy()
@@ -146,6 +151,13 @@ def resolve_crossings(bone_aa: torch.Tensor, bone_t: torch.Tensor, centres: torc
         end_a = np.einsum("tij,j->ti", maps[pr.a][0], pr.end_a) + maps[pr.a][1]
         end_b = (np.einsum("tij,j->ti", maps[pr.b][0], pr.end_b) + maps[pr.b][1]) @ _MIRROR.T
         length = 0.5 * (np.linalg.norm(pr.end_a - pr.top_a) + np.linalg.norm(pr.end_b - pr.top_b))
+        if project is not None:
+            top_a = np.einsum("tij,j->ti", maps[pr.a][0], pr.top_a) + maps[pr.a][1]
+            top_b = np.einsum("tij,j->ti", maps[pr.b][0], pr.top_b) + maps[pr.b][1]
+            ia, ib = project(end_a), project(end_b @ _MIRROR.T)  # end_b back on its own side
+            length = 0.5 * float((np.linalg.norm(ia - project(top_a), axis=1)
+                                  + np.linalg.norm(ib - project(top_b), axis=1)).mean())
+            end_a, end_b = ia, ib
         s = crossing_labels(end_a, end_b, anchor, max_gap * length, window, ratio)
         counts.append(int(s.sum()))
         if not s.any():

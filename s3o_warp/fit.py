@@ -303,6 +303,10 @@ class Fitter:
             raise ConfigError("motion.crossing_window must be >= 1, motion.crossing_ratio > 0 and motion.crossing_max_gap "
                               f">= 0; got {cfg.motion.crossing_window}, {cfg.motion.crossing_ratio}, "
                               f"{cfg.motion.crossing_max_gap}")
+        if cfg.motion.crossing_space not in ("object", "image"):
+            raise ConfigError(f"motion.crossing_space must be 'object' or 'image', got {cfg.motion.crossing_space!r}")
+        if cfg.motion.w_joint < 0:
+            raise ConfigError(f"motion.w_joint must be >= 0 (0 = off), got {cfg.motion.w_joint}")
         if cfg.motion.sweep_stride < 0:
             raise ConfigError(f"motion.sweep_stride must be >= 0 (0 = half the window), got {cfg.motion.sweep_stride}")
         self.coarse = coarse_res
@@ -328,6 +332,8 @@ class Fitter:
             parents = virtual_bones_init(self.model, cfg)
             self.opt = self._make_optimizer()
         self.skel = SkeletonState(parents=parents)
+        v0 = self.model.verts.detach()
+        self.size = float((v0.max(0).values - v0.min(0).values).norm())  # the object's size (bbox diagonal)
         refresh_joints(self.model, self.skel, cfg.skeleton)
 
     # -- NaN/Inf guard ------------------------------------------------------------------------------
@@ -532,6 +538,10 @@ class Fitter:
                 terms["rigid"] = (mc.w_rigid, dynamic_rigidity_loss(verts, self.edges, W.detach()))
             else:
                 terms["rigid"] = (mc.w_rigid, arap_loss(verts, self.edges))
+        if mc.w_joint > 0 and len(self.skel.joints):
+            J = torch.as_tensor(self.skel.joints, dtype=torch.long, device=self.device)
+            P = torch.as_tensor(self.skel.joint_positions, dtype=torch.float32, device=self.device)
+            terms["joint"] = (mc.w_joint, L.joint_attachment_loss(m.bone_rt(frames), J, P, self.size))
         if self.phase == "joint":
             terms["lap"] = (mc.w_lap, laplacian_loss(m.verts - self.lap_ref if mc.lap_relative else m.verts, m.faces))
             terms["sym"] = (mc.w_sym, symmetry_loss(m.verts, self.sym_plane))
@@ -658,8 +668,20 @@ class Fitter:
         pairs = [] if virtual else [p for p in self.coarse.limb_pairs if max(p.a, p.b) < m.num_bones]
         mc = self.cfg.motion
         before = (m.bone_aa.detach().clone(), m.bone_t.detach().clone())
+        project = None
+        if mc.crossing_space == "image":
+            with torch.no_grad():
+                fr = torch.arange(m.num_frames, device=self.device)
+                Rt = m.root_rt(fr).double().cpu().numpy()
+                Kf = m.intrinsics_frame(fr).double().cpu().numpy()
+
+            def project(P: np.ndarray) -> np.ndarray:
+                c = np.einsum("tij,tj->ti", Rt[:, :, :3], P) + Rt[:, :, 3]
+                q = np.einsum("tij,tj->ti", Kf, c)
+                return q[:, :2] / q[:, 2:]
         counts = resolve_crossings(m.bone_aa, m.bone_t, m.bone_centers, pairs, self.coarse.canonical,
-                                   mc.crossing_max_gap, mc.crossing_window, mc.crossing_ratio) if pairs else []
+                                   mc.crossing_max_gap, mc.crossing_window, mc.crossing_ratio,
+                                   project=project) if pairs else []
         for p, old in zip((m.bone_aa, m.bone_t), before):  # Adam's moments of a rewritten frame are the
             st = self.opt.state.get(p)                     # partner's: start them afresh
             changed = (p.detach() != old).any(-1)

@@ -50,6 +50,23 @@ def coverage_loss(
     return d.sum() * (total / idx.shape[0]) / (t * S * S)
 
 
+def joint_attachment_loss(bone_rt: torch.Tensor, joints: torch.Tensor, positions: torch.Tensor, scale: float) -> torch.Tensor:
+    """Bones stay joined: each joint, carried by both of its bones, lands in one place.
+
+    ``bone_rt`` ``(t, B, 3, 4)`` per-frame bone transforms (object frame), ``joints`` ``(J, 2)`` long bone
+    pairs, ``positions`` ``(J, 3)`` rest joint positions. Returns the mean over frames and joints of
+    ``|T_a j - T_b j|^2 / scale^2`` (``scale``: the object's size, so the weight does not depend on units).
+    Without it each bone's free translation lets a leg slide across the body as a rigid piece instead of
+    swinging about its hip.
+    """
+    if joints.numel() == 0:
+        return bone_rt.sum() * 0
+    jh = torch.cat([positions.to(bone_rt), torch.ones_like(positions[:, :1]).to(bone_rt)], -1)  # (J, 4)
+    d = bone_rt[:, joints[:, 0]] - bone_rt[:, joints[:, 1]]  # (t, J, 3, 4)
+    gap = torch.einsum("tjik,jk->tji", d, jh)
+    return (gap**2).sum(-1).mean() / (scale * scale)
+
+
 def soft_iou(sil: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Hard IoU of ``sil > 0.5`` against ``mask > 0.5`` per frame ``(t,)`` (for progress reporting)."""
     a = sil > 0.5

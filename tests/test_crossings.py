@@ -125,6 +125,79 @@ def test_resolve_crossings_in_place():
                           axis_angle_to_matrix(bone_aa[:, 2]), atol=1e-9)
 
 
+
+def test_resolve_crossings_in_the_image_where_depth_hides_the_crossing():
+    """The bouncing legs of test_resolve_crossings_in_place, with leg b also pushed back in depth by two leg
+    lengths: in 3D the feet never meet, so the object-frame step exchanges nothing; seen along depth
+    (``project``) they cross, and the image step makes them swing through."""
+    T = 21
+    top_a, top_b = np.array([0.0, 0.0, -0.1]), np.array([0.0, 0.0, 0.1])
+    end_a, end_b = np.array([0.0, 0.5, -0.1]), np.array([0.0, 0.5, 0.1])
+    centres = torch.tensor([[0.0, -0.3, 0.0], [0.0, 0.25, -0.1], [0.0, 0.25, 0.1]], dtype=torch.float64)
+    tt = np.arange(T)
+    ang1 = 0.5 * np.sin(0.4 * tt + 0.3)
+    front, back = np.maximum(ang1, -ang1), np.minimum(ang1, -ang1)
+
+    def legs():
+        bone_aa = torch.zeros(T, 3, 3, dtype=torch.float64)
+        bone_t = torch.zeros(T, 3, 3, dtype=torch.float64)
+        for k, ang, top, dz in ((1, front, top_a, 0.0), (2, back, top_b, 1.0)):
+            aa = torch.zeros(T, 3, dtype=torch.float64)
+            aa[:, 2] = -torch.as_tensor(ang)
+            R = axis_angle_to_matrix(aa).numpy()
+            c = centres[k].numpy()
+            bone_aa[:, k] = aa
+            bone_t[:, k] = torch.as_tensor(top - c - np.einsum("tij,j->ti", R, top - c) + [0.0, 0.0, dz])
+        return bone_aa, bone_t
+
+    bone_aa, bone_t = legs()
+    assert resolve_crossings(bone_aa, bone_t, centres, [LimbPair(1, 2, top_a, end_a, top_b, end_b)], anchor=2,
+                             max_gap=0.6) == [0]
+    seen = []
+
+    def project(P):  # a camera looking along z, 100 px per unit
+        seen.append(P.shape)
+        return 100.0 * np.asarray(P)[:, :2]
+
+    bone_aa, bone_t = legs()
+    counts = resolve_crossings(bone_aa, bone_t, centres, [LimbPair(1, 2, top_a, end_a, top_b, end_b)], anchor=2,
+                               max_gap=0.6, project=project)
+    assert counts[0] > 0 and seen and all(s == (T, 3) for s in seen)
+    R = axis_angle_to_matrix(bone_aa[:, 1]).numpy()
+    foot = np.einsum("tij,j->ti", R, end_a - centres[1].numpy()) + centres[1].numpy() + bone_t[:, 1].numpy()
+    truth = 0.5 * np.sin(ang1 if front[2] == ang1[2] else -ang1)
+    assert np.allclose(foot[:, 0], truth, atol=1e-9)  # leg a swings through, frame by frame
+
+
+def test_fit_projects_the_crossing_paths_like_the_model(tiny_sequence, tmp_path, monkeypatch):
+    """motion.crossing_space = image (the default) hands the step a projection equal to the model's full-frame one."""
+    import s3o_warp.crossings as X
+    from s3o_warp.fit import Fitter, coarse_model, prepare_data
+
+    cfg = _cfg(**{"motion.crossing_space": "image"})
+    data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
+    fitter = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
+    got = {}
+
+    def fake(bone_aa, bone_t, centres, pairs, anchor, *a, project=None):
+        got["project"] = project
+        return [0] * len(pairs)
+
+    monkeypatch.setattr(X, "resolve_crossings", fake)
+    fitter.resolve_crossings()
+    m = fitter.model
+    fr = torch.arange(m.num_frames)
+    with torch.no_grad():
+        obj = m.posed_object(fr)[:, 0].double().numpy()
+        cam = m(fr)[:, 0]
+        q = (m.intrinsics_frame(fr) @ cam[..., None])[..., 0]
+        want = (q[:, :2] / q[:, 2:]).numpy()
+    assert np.allclose(got["project"](obj), want, atol=1e-3)
+    fitter.cfg = _cfg(**{"motion.crossing_space": "object"})
+    fitter.resolve_crossings()
+    assert got["project"] is None  # object: no projection
+    assert _cfg().motion.crossing_space == "image"
+
 # -- in the fit ---------------------------------------------------------------------------------------
 
 
@@ -158,7 +231,7 @@ def test_fit_relabels_after_warmup_and_first_epoch_and_resets_moments(tiny_seque
     fitter = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
     calls = []
 
-    def fake(bone_aa, bone_t, centres, pairs, anchor, *a):
+    def fake(bone_aa, bone_t, centres, pairs, anchor, *a, **kw):
         calls.append((fitter.phase, fitter.step))
         if fitter.phase == "joint" and fitter.step > 0:
             st = fitter.opt.state[fitter.model.bone_aa]
@@ -197,7 +270,7 @@ def test_moments_of_rewritten_frames_are_reset(tiny_sequence, tmp_path, monkeypa
     a = fitter.coarse.limb_pairs[0].a
     before = {k: v.clone() for k, v in fitter.opt.state[m.bone_aa].items()}
 
-    def fake(bone_aa, bone_t, centres, pairs, anchor, *args):
+    def fake(bone_aa, bone_t, centres, pairs, anchor, *args, **kw):
         bone_aa.data[2, a] += 0.1
         return [1]
 
@@ -211,7 +284,8 @@ def test_moments_of_rewritten_frames_are_reset(tiny_sequence, tmp_path, monkeypa
         assert torch.equal(st[key][mask], before[key][mask])
 
 
-@pytest.mark.parametrize("bad", ["motion.crossing_window=0", "motion.crossing_ratio=0", "motion.crossing_max_gap=-1"])
+@pytest.mark.parametrize("bad", ["motion.crossing_window=0", "motion.crossing_ratio=0", "motion.crossing_max_gap=-1",
+                                 "motion.crossing_space=screen", "motion.w_joint=-1"])
 def test_bad_crossing_settings_are_refused(tiny_sequence, tmp_path, bad):
     from s3o_warp.errors import ConfigError
     from s3o_warp.fit import Fitter, coarse_model, prepare_data
