@@ -160,10 +160,11 @@ class MotionConfig:
     """Weight of the coverage loss during the warm-up (mesh frozen: it moves bones, not vertices); None = ``w_cover``."""
     cover_pixels: int = 256
     """Uncovered mask pixels sampled per frame for the coverage loss (0 = all)."""
-    w_joint: float = 0.0
+    w_joint: float = 10.0
     """Weight of the joint-attachment loss (``losses.joint_attachment_loss``, not in the paper): each joint of
     the kinematic tree, moved by either of its two bones, lands in the same place (squared gap over the
-    object's size squared), so a leg swings about its hip instead of sliding across the body."""
+    object's size squared), so a leg swings about its hip instead of sliding across the body (joints inside
+    the body: quadruped 70 -> 85 %, Fox 77 -> 98 %, horse 78 -> 89 %); 0 = off."""
     resolve_crossings: bool = True
     """After the warm-up, let each symmetric limb pair of the lift swing through its crossings instead of
     bouncing back (frames relabelled where that keeps the feet's velocities, ``s3o_warp.crossings``); on

@@ -536,15 +536,16 @@ def test_joint_attachment_loss_against_a_dense_twin():
 
 
 def test_joint_term_follows_its_weight_and_uses_the_skeletons_joints(tiny_sequence, tmp_path):
-    """motion.w_joint adds the joint term in both phases, on the kinematic tree's joints and the object's
-    size, and its gradient reaches the bones' motion."""
+    """motion.w_joint adds the joint term in both phases (0 = off), on the kinematic tree's joints and the
+    object's size, and its gradient reaches the bones' motion."""
     from s3o_warp import losses as L
 
-    cfg = _cfg(**{"coarse.steps": 2})
+    cfg = _cfg(**{"coarse.steps": 2, "motion.w_joint": 0.0})
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
     frames = torch.arange(0, 3)
-    assert "joint" not in f.motion_losses(frames)[0]  # off by default
+    assert "joint" not in f.motion_losses(frames)[0]  # 0 = off
+    assert _cfg().motion.w_joint == 10.0  # on by default
     cfg = _cfg(**{"coarse.steps": 2, "motion.w_joint": 3.0})
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path / "b", torch.device("cpu"))
     m = f.model
