@@ -148,16 +148,18 @@ def resolve_crossings(bone_aa: torch.Tensor, bone_t: torch.Tensor, centres: torc
         for k in (pr.a, pr.b):
             A = R_all[:, k]
             maps[k] = (A, c_all[k] + t_all[:, k] - A @ c_all[k])
-        end_a = np.einsum("tij,j->ti", maps[pr.a][0], pr.end_a) + maps[pr.a][1]
-        end_b = (np.einsum("tij,j->ti", maps[pr.b][0], pr.end_b) + maps[pr.b][1]) @ _MIRROR.T
-        length = 0.5 * (np.linalg.norm(pr.end_a - pr.top_a) + np.linalg.norm(pr.end_b - pr.top_b))
-        if project is not None:
-            top_a = np.einsum("tij,j->ti", maps[pr.a][0], pr.top_a) + maps[pr.a][1]
-            top_b = np.einsum("tij,j->ti", maps[pr.b][0], pr.top_b) + maps[pr.b][1]
-            ia, ib = project(end_a), project(end_b @ _MIRROR.T)  # end_b back on its own side
-            length = 0.5 * float((np.linalg.norm(ia - project(top_a), axis=1)
-                                  + np.linalg.norm(ib - project(top_b), axis=1)).mean())
-            end_a, end_b = ia, ib
+
+        def posed(k, x, maps=maps):
+            return np.einsum("tij,j->ti", maps[k][0], x) + maps[k][1]
+
+        end_a, end_b = posed(pr.a, pr.end_a), posed(pr.b, pr.end_b)
+        if project is None:  # 3D: b mirrored onto a's side
+            end_b = end_b @ _MIRROR.T
+            length = 0.5 * (np.linalg.norm(pr.end_a - pr.top_a) + np.linalg.norm(pr.end_b - pr.top_b))
+        else:  # the image: each end where it is seen, lengths as projected
+            end_a, end_b = project(end_a), project(end_b)
+            length = 0.5 * float((np.linalg.norm(end_a - project(posed(pr.a, pr.top_a)), axis=1)
+                                  + np.linalg.norm(end_b - project(posed(pr.b, pr.top_b)), axis=1)).mean())
         s = crossing_labels(end_a, end_b, anchor, max_gap * length, window, ratio)
         counts.append(int(s.sum()))
         if not s.any():

@@ -539,8 +539,7 @@ class Fitter:
             else:
                 terms["rigid"] = (mc.w_rigid, arap_loss(verts, self.edges))
         if mc.w_joint > 0 and len(self.skel.joints):
-            J = torch.as_tensor(self.skel.joints, dtype=torch.long, device=self.device)
-            P = torch.as_tensor(self.skel.joint_positions, dtype=torch.float32, device=self.device)
+            J, P = self._joint_tensors()
             terms["joint"] = (mc.w_joint, L.joint_attachment_loss(m.bone_rt(frames), J, P, self.size))
         if self.phase == "joint":
             terms["lap"] = (mc.w_lap, laplacian_loss(m.verts - self.lap_ref if mc.lap_relative else m.verts, m.faces))
@@ -555,6 +554,17 @@ class Fitter:
         terms["smooth"] = (mc.w_smooth, smooth)
         terms["bone_reg"] = (mc.w_bone_reg, (m.bone_t[frames] ** 2).mean())
         return terms, sil, mask
+
+    def _joint_tensors(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The skeleton's joints (bone pairs, rest positions) on the device, copied again only after an
+        M-step has replaced them (``refresh_joints`` assigns new arrays), not every step."""
+        src = (self.skel.joints, self.skel.joint_positions)
+        old = getattr(self, "_joints_src", None)  # held, so the arrays compared by identity stay alive
+        if old is None or old[0] is not src[0] or old[1] is not src[1]:
+            self._joints_dev = (torch.as_tensor(src[0], dtype=torch.long, device=self.device),
+                                torch.as_tensor(src[1], dtype=torch.float32, device=self.device))
+            self._joints_src = src
+        return self._joints_dev
 
     @torch.no_grad()
     def hard_iou(self) -> float:
@@ -668,20 +678,20 @@ class Fitter:
         pairs = [] if virtual else [p for p in self.coarse.limb_pairs if max(p.a, p.b) < m.num_bones]
         mc = self.cfg.motion
         before = (m.bone_aa.detach().clone(), m.bone_t.detach().clone())
-        project = None
+        image = None
         if mc.crossing_space == "image":
             with torch.no_grad():
                 fr = torch.arange(m.num_frames, device=self.device)
-                Rt = m.root_rt(fr).double().cpu().numpy()
-                Kf = m.intrinsics_frame(fr).double().cpu().numpy()
+                Rt = m.root_rt(fr).double().cpu()
+                Kf = m.intrinsics_frame(fr).double().cpu()
 
-            def project(P: np.ndarray) -> np.ndarray:
-                c = np.einsum("tij,tj->ti", Rt[:, :, :3], P) + Rt[:, :, 3]
-                q = np.einsum("tij,tj->ti", Kf, c)
-                return q[:, :2] / q[:, 2:]
+            def image(P: np.ndarray) -> np.ndarray:
+                """Object-frame points (T, 3), one per frame -> full-frame pixels (T, 2)."""
+                cam = (Rt[:, :, :3] @ torch.as_tensor(P, dtype=torch.float64)[..., None])[..., 0] + Rt[:, :, 3]
+                return project(cam[:, None], Kf)[:, 0].numpy()
         counts = resolve_crossings(m.bone_aa, m.bone_t, m.bone_centers, pairs, self.coarse.canonical,
                                    mc.crossing_max_gap, mc.crossing_window, mc.crossing_ratio,
-                                   project=project) if pairs else []
+                                   project=image) if pairs else []
         for p, old in zip((m.bone_aa, m.bone_t), before):  # Adam's moments of a rewritten frame are the
             st = self.opt.state.get(p)                     # partner's: start them afresh
             changed = (p.detach() != old).any(-1)

@@ -564,3 +564,11 @@ def test_joint_term_follows_its_weight_and_uses_the_skeletons_joints(tiny_sequen
     m.bone_t.grad = None
     v.backward()
     assert float(m.bone_t.grad.abs().sum()) > 0
+    with torch.no_grad():
+        m.bone_aa[:, 1:] += 0.2  # rotations, so that where the joints sit matters
+    v1 = float(f.motion_losses(frames)[0]["joint"][1])
+    f.skel.joint_positions = f.skel.joint_positions + [0.1, 0.0, 0.0]  # an M-step replaces the joints: the term follows
+    w, v2 = f.motion_losses(frames)[0]["joint"]
+    assert float(v2) != pytest.approx(v1, rel=1e-3)
+    P2 = torch.as_tensor(f.skel.joint_positions, dtype=torch.float32)
+    assert float(v2) == pytest.approx(float(L.joint_attachment_loss(m.bone_rt(frames), J, P2, size)), rel=1e-5)
