@@ -228,6 +228,11 @@ class SkeletonConfig:
     """Create a joint in a bone whose length varies over frames by more than t_d of its median length."""
     t_r: float = 0.4
     """Joint position: mean of the vertices with both bones' weights >= t_r."""
+    min_bone_length: float = 0.03
+    """Not in the paper: after each merge, inner bones shorter than this fraction of the canonical mesh's bbox
+    diagonal (and bones that own no vertex) are merged into their parent, and joint creation never leaves a half
+    shorter than it (0 = the paper: no limit; without it, hips and shoulders collect knots of ever shorter bones).
+    Short end bones (tail tips, ears, hooves) are kept."""
     centre_joints: bool = True
     """Then move each joint into the body: to the middle of a thin limb's cross-section, at most joint_depth
     below the surface of a thick part (the mean above sits on the surface when the shared vertices are on

@@ -305,6 +305,9 @@ class Fitter:
                               f"{cfg.motion.crossing_max_gap}")
         if cfg.motion.crossing_space not in ("object", "image"):
             raise ConfigError(f"motion.crossing_space must be 'object' or 'image', got {cfg.motion.crossing_space!r}")
+        if not 0 <= cfg.skeleton.min_bone_length < 0.5:
+            raise ConfigError(f"skeleton.min_bone_length must be in [0, 0.5) (a fraction of the object's size; 0 = off), "
+                              f"got {cfg.skeleton.min_bone_length}")
         if cfg.motion.w_joint < 0:
             raise ConfigError(f"motion.w_joint must be >= 0 (0 = off), got {cfg.motion.w_joint}")
         if cfg.motion.sweep_stride < 0:

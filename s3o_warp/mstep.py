@@ -5,8 +5,9 @@ Called by the fit between epochs of the joint phase. For epoch e (0-based, ``e1`
 - e < e1: bone shifting (eq. 5) and skeleton growth at stretched end parts;
 - e == e1: one skeleton upsampling;
 - e > e1: physically constrained refinement: merge neighbouring bones whose flow-derived motion
-  directions agree in every frame (eq. 8, cosine > t_o) and split bones whose length varies over the
-  frames (eq. 6 corrected) into two bones joined at a new joint.
+  directions agree in every frame (eq. 8, cosine > t_o), merge bones shorter than ``min_bone_length``
+  into their parents (not in the paper), and split bones whose length varies over the frames (eq. 6
+  corrected) into two bones joined at a new joint.
 
 After every edit the joints (bone pairs of the kinematic tree) are re-derived and placed at the mean of
 the vertices both bones weigh >= t_r. Per-frame motion and optimiser state are carried over by
@@ -60,6 +61,11 @@ def _xw(model):
     X = model.verts.detach().cpu().double().numpy()
     W = model.skinning().detach().cpu().double().numpy()
     return X, W
+
+
+def _size(X: np.ndarray) -> float:
+    """The canonical mesh's bbox diagonal (the unit of ``min_bone_length``)."""
+    return float(np.linalg.norm(X.max(0) - X.min(0)))
 
 
 def _q(model) -> np.ndarray:
@@ -133,7 +139,7 @@ def bone_length_variation(model, data, state: SkeletonState, cfg) -> np.ndarray:
     for s in range(0, data.num_frames, cfg.motion.batch_frames):
         fr = torch.arange(s, min(s + cfg.motion.batch_frames, data.num_frames), device=model.verts.device)
         lengths.append(sk.bone_lengths_per_frame(E, model.posed_object(fr, weights=Wt).cpu().double().numpy()))
-    return sk.create_joints(np.concatenate(lengths, 0), t_d=sc.t_d), E
+    return sk.create_joints(np.concatenate(lengths, 0), t_d=sc.t_d, min_length=sc.min_bone_length * _size(X)), E
 
 
 def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int) -> bool:
@@ -172,6 +178,13 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int) -> bool:
         edit = sk.merge_bones(S, W, C, Q, state.parents, t_o=sc.t_o, mode=sc.merge_mode,
                               temperature=sc.merge_temperature, extents=state.extents)
         changed |= _apply(model, opt, state, edit, "merge", epoch, sc)
+        if sc.min_bone_length > 0 and len(state.joints):
+            X, W = _xw(model)
+            C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
+            E = sk.bone_endpoints(X, W, state.joints, t_r=sc.t_r, far_fraction=sc.far_fraction)
+            edit = sk.prune_short_bones(sk.bone_lengths(E, X), sc.min_bone_length * _size(X), W, C, Q,
+                                        state.parents, extents=state.extents)
+            changed |= _apply(model, opt, state, edit, "prune", epoch, sc)
         if len(state.joints):
             split, E = bone_length_variation(model, data, state, cfg)
             if split.any() and model.num_bones + int(split.sum()) <= sc.max_bones:

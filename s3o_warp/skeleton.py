@@ -24,8 +24,10 @@ apply_edit(model, optimizer, e)``, and after every edit W, C, Q and parents are 
     F, ok = bone_flow(verts_cam, K_crop, flow_fwd, visible, W)      # after e1
     apply(merge_bones(motion_similarity(F, ok), W, C, Q, parents, t_o))
     E = bone_endpoints(X, W, tree_joints(parents))
+    apply(prune_short_bones(bone_lengths(E, X), min_length, W, C, Q, parents))  # not in the paper
+    E = bone_endpoints(X, W, tree_joints(parents))
     L = bone_lengths_per_frame(E, model.posed_object(frames, W))
-    apply(split_at_joints(X, W, C, Q, parents, E, create_joints(L, t_d)))
+    apply(split_at_joints(X, W, C, Q, parents, E, create_joints(L, t_d, min_length)))
     pairs = tree_joints(parents); J = joint_positions(X, W, pairs); lengths = bone_lengths(E, X)
 """
 
@@ -51,6 +53,7 @@ from s3o_warp.skeleton_edit import (
     part_extents,
     precision_from_points,
     precision_to_quat_scales,
+    prune_short_bones,
     remap_bones,
     shift_bones,
     split_at_joints,
@@ -393,7 +396,7 @@ def bone_lengths_per_frame(endpoints, verts_posed) -> np.ndarray:
     return bone_lengths(endpoints, X)
 
 
-def create_joints(lengths, t_d: float = 0.25) -> np.ndarray:
+def create_joints(lengths, t_d: float = 0.25, min_length: float = 0.0) -> np.ndarray:
     """Which bones get a new joint, eq. 6 corrected: ``(max_f L_b^f - min_f L_b^f) / median_f L_b^f > t_d``.
 
     The paper compares two different bones (a typo); the intent is one bone's length range over the
@@ -407,9 +410,14 @@ def create_joints(lengths, t_d: float = 0.25) -> np.ndarray:
     range is 0.19-0.21 with no stretch at all. The default t_d = 0.25 sits above that; lower values
     also split rigid bones between strongly bending neighbours.
 
+    Because the test is relative, a short bone at a strongly bending joint qualifies again and again and
+    its halves too; ``min_length`` (not in the paper) stops that: a bone is only split when both halves
+    would be at least ``min_length`` long (median length >= 2 x min_length).
+
     Args:
         lengths: ``(T, B)`` per-frame bone lengths (:func:`bone_lengths_per_frame`).
         t_d: relative length-variation threshold (not given in the paper; see Calibration).
+        min_length: shortest half a split may leave, in the units of ``lengths`` (0 = no limit).
 
     Returns:
         ``(B,)`` bool.
@@ -419,7 +427,7 @@ def create_joints(lengths, t_d: float = 0.25) -> np.ndarray:
         raise ValueError(f"create_joints(): lengths must have shape (T, B), got {L.shape}")
     med = np.median(L, axis=0)
     rng = L.max(0) - L.min(0)
-    return (med > 1e-12) & (rng > t_d * np.maximum(med, 1e-12))
+    return (med > 1e-12) & (med >= 2.0 * min_length) & (rng > t_d * np.maximum(med, 1e-12))
 
 
 def parent_anchors(parents, pairs, positions) -> np.ndarray:
@@ -622,6 +630,7 @@ __all__ = [
     "part_extents",
     "precision_from_points",
     "precision_to_quat_scales",
+    "prune_short_bones",
     "remap_bones",
     "shift_bones",
     "skeleton_json",

@@ -640,6 +640,53 @@ def merge_bones(
                         None if E0 is None else np.asarray(ext))
 
 
+def prune_short_bones(lengths, min_length: float, weights, centers, precisions, parents, extents=None) -> SkeletonEdit:
+    """Merge every inner bone shorter than ``min_length``, and every bone that owns no vertex, into its
+    parent (a root: into its longest child).
+
+    Not in the paper. Joint creation (eq. 6) compares a bone's length range with its own median, so a
+    short bone at a strongly bending joint (a hip, a shoulder) keeps qualifying and is split again and
+    again into a knot of ever shorter bones; an upsampled bone can also end up owning no vertex at all
+    (length 0). Such bones carry no motion of their own that their neighbours do not, and they clutter
+    the exported rig. A short end bone (no children) that owns vertices is kept: it is a tail tip, an
+    ear or a hoof. The pairs (short bone, neighbour) are merged as by :func:`merge_bones` in
+    ``"components"`` mode with the paper's weights (temperature 1), so a chain of short bones collapses
+    into the long bone it hangs from, whose centre, precision and motion win by their weight mass.
+
+    Args:
+        lengths: ``(B,)`` canonical bone lengths (:func:`s3o_warp.skeleton.bone_lengths`).
+        min_length: bones with ``lengths < min_length`` are merged (same units as ``lengths``).
+        weights, centers, precisions, parents, extents: as in :func:`merge_bones`.
+
+    Returns:
+        A :class:`SkeletonEdit` (the identity when no bone is short or the only bone is).
+    """
+    L = _np(lengths)
+    P = _np(parents, np.int64)
+    B = len(P)
+    _check("prune_short_bones", "lengths", L, (B,))
+    if min_length < 0:
+        raise ValueError(f"prune_short_bones(): min_length must be >= 0, got {min_length}")
+    S = np.zeros((B, B))
+    kids = children_of(P)
+    owned = np.bincount(assign_parts(_np(weights)), minlength=B)[:B]
+    kids = [[c for c in k if owned[c] > 0] for k in kids]  # empty children go anyway: they do not make an inner bone
+    short = [int(b) for b in np.flatnonzero(L < min_length) if kids[b] or owned[b] == 0]
+    for b in short:
+        if P[b] >= 0:
+            other = int(P[b])
+        elif kids[b]:
+            other = max(kids[b], key=lambda c: L[c])
+        else:
+            continue
+        S[b, other] = S[other, b] = 1.0
+    if not S.any():
+        return _identity_edit(_np(centers), _np(precisions), P, extents)
+    log.info("prune_short_bones: bones %s shorter than %.4g (or empty)", short, min_length)
+    return merge_bones(S, weights, centers, precisions, P, t_o=0.5, mode="components", temperature=1.0,
+                       extents=extents)
+
+
 # ---------------------------------------------------------------------------------------------------
 # model surgery
 # ---------------------------------------------------------------------------------------------------
@@ -796,6 +843,7 @@ __all__ = [
     "part_extents",
     "precision_from_points",
     "precision_to_quat_scales",
+    "prune_short_bones",
     "remap_bones",
     "shift_bones",
     "split_at_joints",

@@ -271,6 +271,67 @@ def test_merge_modes_and_log_space_weights_do_not_overflow():
     assert 0.1 < [wi for _, wi in soft.sources[0]][1] < 0.9
 
 
+def _short_middle(n_long=100, n_short=5):
+    """Bones 0 | 1 | 2 along x with hard weights: 0 on [0, 1), 1 (short, few vertices) on [1, 1.05), 2 on [1.05, 2]."""
+    rng = np.random.default_rng(21)
+    X = np.concatenate([_segment_cloud([0, 0, 0], [1, 0, 0], n_long, 0.05, rng),
+                        _segment_cloud([1, 0, 0], [1.05, 0, 0], n_short, 0.05, rng),
+                        _segment_cloud([1.05, 0, 0], [2, 0, 0], n_long, 0.05, rng)])
+    W = _hard_weights(np.repeat([0, 1, 2], [n_long, n_short, n_long]), 3)
+    C = sk.shift_bones(X, W, np.zeros((3, 3)))
+    Q = np.stack([np.eye(3) * (b + 1) for b in range(3)])
+    return X, W, C, Q
+
+
+def test_prune_short_bones_merges_into_the_parent():
+    """A short inner bone is merged into its parent (the long one wins: its centre, precision and motion)."""
+    X, W, C, Q = _short_middle()
+    E = sk.bone_endpoints(X, W, sk.tree_joints(np.array([-1, 0, 1])))
+    L = sk.bone_lengths(E, X)
+    assert L[1] < 0.1 < 0.4 < min(L[0], L[2])  # the middle bone is the short one
+    e = sk.prune_short_bones(L, 0.2, W, C, Q, np.array([-1, 0, 1]), extents=np.array([1.0, 0.05, 1.0]))
+    assert e.changed and e.num_bones == 2 and e.parents.tolist() == [-1, 0]
+    assert [i for i, _ in e.sources[0]] == [0, 1] and e.sources[1] == [(2, 1.0)]
+    np.testing.assert_allclose(e.centers[0], C[0], atol=1e-12)  # mass 100 vs 5: bone 0 wins outright
+    np.testing.assert_allclose(e.precisions[0], Q[0], atol=1e-12)
+    assert e.extents.tolist() == [1.0, 1.0]
+    # nothing shorter than the limit: unchanged; a limit of 0 never prunes
+    assert not sk.prune_short_bones(np.array([1.0, 0.5, 1.0]), 0.2, W, C, Q, np.array([-1, 0, 1])).changed
+    assert not sk.prune_short_bones(np.zeros(3), 0.0, W, C, Q, np.array([-1, 0, 1])).changed
+    # a chain of short bones collapses into the long bone it hangs from; the long child re-hangs on it
+    lab4 = W.argmax(1)
+    lab4[-50:] = 3  # the far half of bone 2's vertices go to bone 3
+    W4 = _hard_weights(lab4, 4)
+    C4, Q4 = np.concatenate([C, C[:1]]), np.concatenate([Q, Q[:1]])
+    e4 = sk.prune_short_bones(np.array([1.0, 0.02, 0.01, 1.0]), 0.1, W4, C4, Q4, np.array([-1, 0, 1, 2]))
+    assert [[i for i, _ in s] for s in e4.sources] == [[0, 1, 2], [3]] and e4.parents.tolist() == [-1, 0]
+    # a short root merges with its longest child
+    er = sk.prune_short_bones(np.array([0.01, 0.5, 1.0]), 0.1, W, C, Q, np.array([-1, 0, 0]))
+    assert [[i for i, _ in s] for s in er.sources] == [[0, 2], [1]] and er.parents.tolist() == [-1, 0]
+    # a short end bone that owns vertices (a tail tip, a hoof) is kept; one that owns none is merged
+    assert not sk.prune_short_bones(np.array([1.0, 1.0, 0.01]), 0.1, W, C, Q, np.array([-1, 0, 1])).changed
+    W_empty = W.copy()
+    W_empty[:, 1] += W_empty[:, 2]
+    W_empty[:, 2] = 0.0  # bone 2 owns nothing
+    ee = sk.prune_short_bones(np.array([1.0, 1.0, 0.0]), 0.1, W_empty, C, Q, np.array([-1, 0, 1]))
+    assert [[i for i, _ in s] for s in ee.sources] == [[0], [1, 2]]
+    # ... and a short bone whose only child owns nothing is an end bone: it stays, the empty child goes
+    ee = sk.prune_short_bones(np.array([1.0, 0.01, 0.0]), 0.1, W_empty, C, Q, np.array([-1, 0, 1]))
+    assert [[i for i, _ in s] for s in ee.sources] == [[0], [1, 2]]
+    # a lone bone has nothing to merge with
+    assert not sk.prune_short_bones(np.array([0.0]), 0.1, W[:, :1] * 0, C[:1], Q[:1], np.array([-1])).changed
+    with pytest.raises(ValueError, match="min_length"):
+        sk.prune_short_bones(L, -1.0, W, C, Q, np.array([-1, 0, 1]))
+
+
+def test_create_joints_leaves_no_half_shorter_than_min_length():
+    """A bone stretching by 50 % gets a joint unless its halves would be shorter than min_length."""
+    L = np.stack([np.array([1.0, 0.1 * (1 + 0.5 * f / 5), 1.0]) for f in range(6)])  # bone 1: median 0.125
+    assert sk.create_joints(L).tolist() == [False, True, False]  # the paper's relative test alone
+    assert sk.create_joints(L, min_length=0.06).tolist() == [False, True, False]  # halves 0.0625 >= 0.06
+    assert not sk.create_joints(L, min_length=0.07).any()  # halves would be 0.0625 < 0.07
+
+
 # -------------------------------------------------------------------------------------------------
 # shifting, growth, upsampling
 # -------------------------------------------------------------------------------------------------
