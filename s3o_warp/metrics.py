@@ -906,17 +906,22 @@ def limb_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, gt_parents: np
 
     A limb (see :func:`gt_limbs`) counts as covered when, in at least half of the frames, ``min_joints``
     or more predicted joints lie within ``tol`` x the bbox diagonal of the limb's polyline (after the
-    sequence alignment ``sim``). Returns per-limb median counts and the covered fraction.
+    sequence alignment ``sim``). Returns per-limb median counts, ``tol_needed`` (the limb is covered at
+    every ``tol`` above it; None with fewer than ``min_joints`` predicted joints) and the covered fraction.
     """
     pj = sim(pred_joints) if sim is not None else np.asarray(pred_joints, dtype=np.float64)
     gj = np.asarray(gt_joints, dtype=np.float64)
+    T = gj.shape[0]
     out = []
     for limb in gt_limbs(gt_parents, names):
-        counts = np.array([(_point_polyline_distance(pj[t], gj[t, limb["joints"]]) < tol * diag[t]).sum()
-                           for t in range(gj.shape[0])])
+        d = np.stack([_point_polyline_distance(pj[t], gj[t, limb["joints"]]) / diag[t] for t in range(T)])
+        counts = (d < tol).sum(1)
         covered = bool((counts >= min_joints).mean() >= 0.5)
+        # the min_joints-th nearest joint per frame; covered iff it is < tol in ceil(T / 2) frames or more
+        kth = np.sort(d, axis=1)[:, min_joints - 1] if d.shape[1] >= min_joints else None
+        need = None if kth is None else float(np.sort(kth)[int(np.ceil(T / 2)) - 1])
         out.append({"limb": limb["name"], "gt_joints": len(limb["joints"]), "median_pred_joints": float(np.median(counts)),
-                    "covered": covered})
+                    "covered": covered, "tol_needed": need})
     n = len(out)
     return {"limbs": out, "covered": sum(o["covered"] for o in out), "total": n, "tol": tol, "min_joints": min_joints}
 

@@ -562,6 +562,19 @@ def test_limb_coverage_on_a_hand_made_tree():
     part = limb_coverage(pred, gt, parents, diag)
     got = {l["limb"]: l["covered"] for l in part["limbs"]}
     assert got == {"joint_3": True, "joint_5": False, "joint_6": False} and part["covered"] == 1
+    # tol_needed: covered at every tolerance above it, not at or below it
+    need = {l["limb"]: l["tol_needed"] for l in part["limbs"]}
+    assert need["joint_3"] == 0.0  # both joints on the polyline
+    for tol in (0.05, 0.2, 0.3, 0.4, 0.6):
+        got = {l["limb"]: l["covered"] for l in limb_coverage(pred, gt, parents, diag, tol=tol)["limbs"]}
+        assert got == {k: tol > v for k, v in need.items()}, (tol, need)
+    # with a frame moved away, the needed tolerance is the worse of the best half of the frames
+    pred3 = pred.copy()
+    pred3[0] += np.array([0, 0, 0.6])  # frame 0: 0.2 of the diagonal off
+    pred3[1] += np.array([0, 0, 0.3])  # frame 1: 0.1 off; frame 2 on the polyline
+    n3 = {l["limb"]: l["tol_needed"] for l in limb_coverage(pred3, gt, parents, diag)["limbs"]}
+    assert abs(n3["joint_3"] - 0.1) < 1e-12
+    assert limb_coverage(pred[:, :1], gt, parents, diag)["limbs"][0]["tol_needed"] is None  # one joint, two needed
 
 
 def test_a_usd_export_scores_like_its_run(tmp_path):
