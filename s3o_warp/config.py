@@ -228,7 +228,7 @@ class SkeletonConfig:
     """Create a joint in a bone whose length varies over frames by more than t_d of its median length."""
     t_r: float = 0.4
     """Joint position: mean of the vertices with both bones' weights >= t_r."""
-    min_bone_length: float = 0.03
+    min_bone_length: float = 0.015
     """Not in the paper: after each merge, inner bones shorter than this fraction of the canonical mesh's bbox
     diagonal (and bones that own no vertex) are merged into their parent, and joint creation never leaves a half
     shorter than it (0 = the paper: no limit; without it, hips and shoulders collect knots of ever shorter bones).
