@@ -63,11 +63,6 @@ def _xw(model):
     return X, W
 
 
-def _size(X: np.ndarray) -> float:
-    """The canonical mesh's bbox diagonal (the unit of ``min_bone_length``)."""
-    return float(np.linalg.norm(X.max(0) - X.min(0)))
-
-
 def _q(model) -> np.ndarray:
     return model.precisions().detach().cpu().double().numpy()
 
@@ -139,7 +134,7 @@ def bone_length_variation(model, data, state: SkeletonState, cfg) -> np.ndarray:
     for s in range(0, data.num_frames, cfg.motion.batch_frames):
         fr = torch.arange(s, min(s + cfg.motion.batch_frames, data.num_frames), device=model.verts.device)
         lengths.append(sk.bone_lengths_per_frame(E, model.posed_object(fr, weights=Wt).cpu().double().numpy()))
-    return sk.create_joints(np.concatenate(lengths, 0), t_d=sc.t_d, min_length=sc.min_bone_length * _size(X)), E
+    return sk.create_joints(np.concatenate(lengths, 0), t_d=sc.t_d, min_length=sc.min_bone_length * sk.size_of(X)), E
 
 
 def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int) -> bool:
@@ -182,7 +177,7 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int) -> bool:
             X, W = _xw(model)
             C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
             E = sk.bone_endpoints(X, W, state.joints, t_r=sc.t_r, far_fraction=sc.far_fraction)
-            edit = sk.prune_short_bones(sk.bone_lengths(E, X), sc.min_bone_length * _size(X), W, C, Q,
+            edit = sk.prune_short_bones(sk.bone_lengths(E, X), sc.min_bone_length * sk.size_of(X), W, C, Q,
                                         state.parents, extents=state.extents)
             changed |= _apply(model, opt, state, edit, "prune", epoch, sc)
         if len(state.joints):

@@ -248,6 +248,13 @@ def joint_positions(verts, weights, pairs, t_r: float = 0.4, fallback_count: int
     return np.einsum("jn,...nc->...jc", Ssel, X)
 
 
+def size_of(verts) -> float:
+    """The bbox diagonal of ``(N, 3)`` canonical vertices: the unit of the M-step's relative lengths
+    (``joint_depth``, ``min_bone_length``)."""
+    X = _np(verts)
+    return float(np.linalg.norm(X.max(0) - X.min(0)))
+
+
 def centre_in_body(points, verts, faces, iterations: int = 2, max_depth: float = 0.03, inset: float = 1e-3
                    ) -> np.ndarray:
     """Move points (joints) into the body: onto a thin limb's axis, a little way into a thick part.
@@ -290,7 +297,7 @@ def centre_in_body(points, verts, faces, iterations: int = 2, max_depth: float =
     for k in range(3):
         np.add.at(vn, Fi[:, k], fn)
     vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-30)
-    diag = float(np.linalg.norm(X.max(0) - X.min(0)))
+    diag = size_of(X)
     eps, cap = inset * diag, max_depth * diag
     for _ in range(max(0, iterations)):
         d, f, b = closest_point(V, F, torch.as_tensor(P))
@@ -633,6 +640,7 @@ __all__ = [
     "prune_short_bones",
     "remap_bones",
     "shift_bones",
+    "size_of",
     "skeleton_json",
     "split_at_joints",
     "tree_joints",

@@ -671,16 +671,17 @@ def prune_short_bones(lengths, min_length: float, weights, centers, precisions, 
     kids = children_of(P)
     owned = np.bincount(assign_parts(_np(weights)), minlength=B)[:B]
     kids = [[c for c in k if owned[c] > 0] for k in kids]  # empty children go anyway: they do not make an inner bone
-    short = [int(b) for b in np.flatnonzero(L < min_length) if kids[b] or owned[b] == 0]
-    for b in short:
-        if P[b] >= 0:
-            other = int(P[b])
-        elif kids[b]:
-            other = max(kids[b], key=lambda c: L[c])
-        else:
-            continue
+    short = []
+    for b in np.flatnonzero(L < min_length):
+        b = int(b)
+        if not (kids[b] or owned[b] == 0):
+            continue  # a short end bone with vertices: kept
+        if P[b] < 0 and not kids[b]:
+            continue  # a lone root: nothing to merge with
+        other = int(P[b]) if P[b] >= 0 else max(kids[b], key=lambda c: L[c])
         S[b, other] = S[other, b] = 1.0
-    if not S.any():
+        short.append(b)
+    if not short:
         return _identity_edit(_np(centers), _np(precisions), P, extents)
     log.info("prune_short_bones: bones %s shorter than %.4g (or empty)", short, min_length)
     return merge_bones(S, weights, centers, precisions, P, t_o=0.5, mode="components", temperature=1.0,

@@ -429,12 +429,12 @@ def test_m_step_prunes_short_bones_and_keeps_the_loss(tiny_sequence, tmp_path):
     """After e1 the M-step merges bones shorter than skeleton.min_bone_length into their parents; the
     posed mesh and the loss barely move (the short bone's few vertices follow its parent)."""
     from s3o_warp import skeleton as sk
-    from s3o_warp.mstep import _size, m_step
+    from s3o_warp.mstep import m_step
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     cfg.skeleton.t_o, cfg.skeleton.t_d = 2.0, 1e9  # no motion merge, no joint creation: only the pruning
     X, W = f.model.verts.detach().double().numpy(), f.model.skinning().detach().double().numpy()
-    L = sk.bone_lengths(sk.bone_endpoints(X, W, f.skel.joints, t_r=cfg.skeleton.t_r), X) / _size(X)
+    L = sk.bone_lengths(sk.bone_endpoints(X, W, f.skel.joints, t_r=cfg.skeleton.t_r), X) / sk.size_of(X)
     inner = np.flatnonzero(np.bincount(f.skel.parents[f.skel.parents >= 0], minlength=len(L)) > 0)
     cfg.skeleton.min_bone_length = float(L[inner].min() * 1.001)  # the shortest inner bone is short
     before, loss0 = _posed_and_loss(f, frames)
