@@ -233,6 +233,14 @@ class SkeletonConfig:
     diagonal (and bones that own no vertex) are merged into their parent, and joint creation never leaves a half
     shorter than it (0 = the paper: no limit; without it, hips and shoulders collect knots of ever shorter bones).
     Short end bones (tail tips, ears, hooves) are kept."""
+    mirror: bool = False
+    """Not in the paper: a bone and its mirror partner across the lift's symmetry plane get the same refinement
+    decisions (merge, short-bone pruning, joint creation), taken by whichever of the two is seen moving in more
+    frames. A far-side leg is seen less than its partner, so on its own it keeps or loses joints by what little
+    the camera saw of it. false = each bone decides on its own (the paper)."""
+    mirror_tol: float = 0.05
+    """Bones are mirror partners when one's centre reflected lies within this fraction of the canonical mesh's
+    bbox diagonal of the other's (mutual nearest, opposite sides of the plane)."""
     centre_joints: bool = True
     """Then move each joint into the body: to the middle of a thin limb's cross-section, at most joint_depth
     below the surface of a thick part (the mean above sits on the surface when the shared vertices are on

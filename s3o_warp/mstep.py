@@ -9,6 +9,13 @@ Called by the fit between epochs of the joint phase. For epoch e (0-based, ``e1`
   into their parents (not in the paper), and split bones whose length varies over the frames (eq. 6
   corrected) into two bones joined at a new joint.
 
+With ``skeleton.mirror`` (not in the paper) the refinement takes the same decisions for a bone and its mirror
+partner across the lift's symmetry plane (:func:`s3o_warp.skeleton.mirror_partners`), from whichever of the
+two is seen moving in more frames: a pair's motion similarity, a bone's length for the pruning and whether
+it gets a joint. A far-side leg is seen in fewer frames than its partner: its similarity to a neighbour is a
+minimum over fewer frames (or, seen in fewer than ``min_frames``, never allows a merge), so on its own it
+keeps or loses joints by what little of it the camera saw.
+
 After every edit the joints (bone pairs of the kinematic tree) are re-derived and placed at the mean of
 the vertices both bones weigh >= t_r. Per-frame motion and optimiser state are carried over by
 ``skeleton.apply_edit`` so the loss does not jump.
@@ -97,8 +104,9 @@ def _apply(model, opt, state: SkeletonState, edit, what: str, epoch: int, sc) ->
 
 
 @torch.no_grad()
-def bone_motion_similarity(model, data, cfg) -> np.ndarray:
-    """Eq. 4 + 8: per-bone flow over all frames (visible vertices only), min-over-frames cosine ``(B, B)``."""
+def bone_motion_similarity(model, data, cfg) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 4 + 8: per-bone flow over all frames (visible vertices only), min-over-frames cosine ``(B, B)``,
+    and the ``(B, B)`` counts of frames each pair was compared on (:func:`s3o_warp.skeleton.motion_similarity`)."""
     from s3o_warp.kernels.visibility import vertex_visibility
 
     sc = cfg.skeleton
@@ -119,8 +127,9 @@ def bone_motion_similarity(model, data, cfg) -> np.ndarray:
         valid.append(ok)
     FB = torch.cat(FB, 0)
     valid = torch.cat(valid, 0)
-    return sk.motion_similarity(FB, valid, min_flow=sc.min_flow, min_frames=sc.min_frames,
-                                quantile=sc.merge_quantile).cpu().double().numpy()
+    S, N = sk.motion_similarity(FB, valid, min_flow=sc.min_flow, min_frames=sc.min_frames,
+                                quantile=sc.merge_quantile, return_frames=True)
+    return S.cpu().double().numpy(), N.cpu().numpy()
 
 
 @torch.no_grad()
@@ -137,8 +146,37 @@ def bone_length_variation(model, data, state: SkeletonState, cfg) -> np.ndarray:
     return sk.create_joints(np.concatenate(lengths, 0), t_d=sc.t_d, min_length=sc.min_bone_length * sk.size_of(X)), E
 
 
-def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int) -> bool:
-    """One M-step after epoch ``epoch`` of the joint phase; returns whether the skeleton changed."""
+def _mirror(model, data, cfg, sym_plane, frames=None) -> tuple[np.ndarray, np.ndarray] | None:
+    """The bones' mirror partners ``m`` (:func:`s3o_warp.skeleton.mirror_partners`) and the frames each bone is
+    seen moving (the diagonal of ``frames``, the usable-frame counts of :func:`bone_motion_similarity`, computed
+    when not given); None when mirroring is off."""
+    sc = cfg.skeleton
+    if sym_plane is None or not sc.mirror:
+        return None
+    if frames is None:
+        frames = bone_motion_similarity(model, data, cfg)[1]
+    X = model.verts.detach().cpu().double().numpy()
+    C = model.bone_centers.detach().cpu().double().numpy()
+    m = sk.mirror_partners(C, sym_plane, sc.mirror_tol * sk.size_of(X))
+    return m, np.diag(frames).copy()
+
+
+def _from_mirror(own: np.ndarray, seen: np.ndarray, m: np.ndarray, what: str) -> np.ndarray:
+    """Per bone: its mirror partner's value where the partner is seen in more frames, its own otherwise."""
+    take = seen[m] > seen
+    differ = np.flatnonzero(take & (own[m] != own))
+    if len(differ):
+        log.info("M-step: %s of bones %s taken from their better-seen mirror partners %s", what, differ.tolist(),
+                 m[differ].tolist())
+    return np.where(take, own[m], own)
+
+
+def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int, sym_plane=None) -> bool:
+    """One M-step after epoch ``epoch`` of the joint phase; returns whether the skeleton changed.
+
+    ``sym_plane``: the lift's symmetry plane ``(normal, offset)`` in the object frame; with
+    ``skeleton.mirror`` the refinement decides for a bone and its mirror partner together (module docstring).
+    """
     sc = cfg.skeleton
     if sc.method != "s3o":
         return False
@@ -169,19 +207,34 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int) -> bool:
         if edit.num_bones <= sc.max_bones:
             changed |= _apply(model, opt, state, edit, "upsample", epoch, sc)
     else:
-        S = bone_motion_similarity(model, data, cfg)
+        S, N = bone_motion_similarity(model, data, cfg)
+        mirror = _mirror(model, data, cfg, sym_plane, N)
+        if mirror is not None:  # a pair's similarity from the better-seen of it and its mirror image
+            m = mirror[0]
+            Nm = N[np.ix_(m, m)]
+            flip = np.flatnonzero(((Nm > N) & ((S[np.ix_(m, m)] > sc.t_o) != (S > sc.t_o))).any(1))
+            if len(flip):
+                log.info("M-step: merges of bones %s decided by their better-seen mirror partners", flip.tolist())
+            S = np.where(Nm > N, S[np.ix_(m, m)], S)
         edit = sk.merge_bones(S, W, C, Q, state.parents, t_o=sc.t_o, mode=sc.merge_mode,
                               temperature=sc.merge_temperature, extents=state.extents)
-        changed |= _apply(model, opt, state, edit, "merge", epoch, sc)
+        if _apply(model, opt, state, edit, "merge", epoch, sc):
+            changed, mirror = True, _mirror(model, data, cfg, sym_plane)
         if sc.min_bone_length > 0 and len(state.joints):
             X, W = _xw(model)
             C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
             E = sk.bone_endpoints(X, W, state.joints, t_r=sc.t_r, far_fraction=sc.far_fraction)
-            edit = sk.prune_short_bones(sk.bone_lengths(E, X), sc.min_bone_length * sk.size_of(X), W, C, Q,
+            L = sk.bone_lengths(E, X)
+            if mirror is not None:
+                L = _from_mirror(L, mirror[1], mirror[0], "lengths")
+            edit = sk.prune_short_bones(L, sc.min_bone_length * sk.size_of(X), W, C, Q,
                                         state.parents, extents=state.extents)
-            changed |= _apply(model, opt, state, edit, "prune", epoch, sc)
+            if _apply(model, opt, state, edit, "prune", epoch, sc):
+                changed, mirror = True, _mirror(model, data, cfg, sym_plane)
         if len(state.joints):
             split, E = bone_length_variation(model, data, state, cfg)
+            if mirror is not None:
+                split = _from_mirror(split, mirror[1], mirror[0], "joint creation")
             if split.any() and model.num_bones + int(split.sum()) <= sc.max_bones:
                 X, W = _xw(model)
                 C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)

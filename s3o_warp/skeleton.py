@@ -50,6 +50,7 @@ from s3o_warp.skeleton_edit import (
     children_of,
     grow_skeleton,
     merge_bones,
+    mirror_partners,
     part_extents,
     precision_from_points,
     precision_to_quat_scales,
@@ -152,7 +153,7 @@ def bone_flow(
 
 
 def motion_similarity(F_B: torch.Tensor, valid: torch.Tensor, min_flow: float = 0.5,
-                      min_frames: int = 2, quantile: float = 0.0) -> torch.Tensor:
+                      min_frames: int = 2, quantile: float = 0.0, return_frames: bool = False):
     """Motion similarity of every bone pair, eq. 8: ``min_f S(F_b^f, F_b'^f)`` over frames both see.
 
     ``S`` is the cosine similarity, made safe for static frames: with ``m = min_flow`` (pixels),
@@ -170,9 +171,11 @@ def motion_similarity(F_B: torch.Tensor, valid: torch.Tensor, min_flow: float = 
         min_flow: m, the magnitude (pixels) below which a bone counts as static in a frame.
         min_frames: fewest common usable frames for a finite similarity.
         quantile: q in [0, 1) of the usable frames' similarities (0 = min, eq. 8).
+        return_frames: also return how many usable frames each pair has.
 
     Returns:
-        ``(B, B)`` float32 symmetric similarities in [-1, 1] or -inf.
+        ``(B, B)`` float32 symmetric similarities in [-1, 1] or -inf; with ``return_frames`` also the
+        ``(B, B)`` int64 counts of usable frames (the diagonal: the frames a bone is seen moving).
     """
     if F_B.dim() != 3 or F_B.shape[-1] != 2:
         raise ValueError(f"motion_similarity(): F_B must have shape (T-1, B, 2), got {tuple(F_B.shape)}")
@@ -194,7 +197,7 @@ def motion_similarity(F_B: torch.Tensor, valid: torch.Tensor, min_flow: float = 
             out = torch.where(use, S, torch.full_like(S, float("inf"))).min(0).values
         out = torch.where(use.sum(0) >= min_frames, out, torch.full_like(out, float("-inf")))
         out.fill_diagonal_(1.0)
-    return out
+    return (out, use.sum(0)) if return_frames else out
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -632,6 +635,7 @@ __all__ = [
     "joint_selection",
     "kinematic_tree",
     "merge_bones",
+    "mirror_partners",
     "motion_similarity",
     "parent_anchors",
     "part_extents",

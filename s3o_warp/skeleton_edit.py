@@ -688,6 +688,40 @@ def prune_short_bones(lengths, min_length: float, weights, centers, precisions, 
                        extents=extents)
 
 
+def mirror_partners(centers, plane, tol: float) -> np.ndarray:
+    """Each bone's mirror image across the symmetry plane ``n . p = d``: ``(B,)`` int64, ``m[b]`` the bone whose
+    centre lies nearest to b's reflected centre, where that is mutual, within ``tol`` and on the other side of
+    the plane; ``m[b] = b`` otherwise (bones on the plane, bones without a partner).
+
+    Not in the paper. The M-step uses it to take the same decision for a limb and its mirror image
+    (:func:`s3o_warp.mstep.m_step`): a far-side leg is seen less and its flow-derived motion and lengths say
+    less, so on its own it loses joints its near-side partner keeps.
+
+    Args:
+        centers: ``(B, 3)`` bone centres C in the canonical object frame.
+        plane: ``(normal (3,), offset)``; the normal need not be unit length.
+        tol: largest distance between a reflected centre and its partner's centre (object units).
+    """
+    C = _np(centers)
+    _check("mirror_partners", "centers", C, (None, 3))
+    n = _np(plane[0]).reshape(3)
+    norm = float(np.linalg.norm(n))
+    if not norm > 0:
+        raise ValueError("mirror_partners(): the plane's normal must not be zero")
+    if tol < 0:
+        raise ValueError(f"mirror_partners(): tol must be >= 0, got {tol}")
+    n, d = n / norm, float(plane[1]) / norm
+    side = C @ n - d  # signed distances to the plane
+    R = C - 2.0 * side[:, None] * n  # reflected centres
+    D = np.linalg.norm(R[:, None, :] - C[None, :, :], axis=-1)  # D[b, j] = |refl(C_b) - C_j|
+    near = D.argmin(1)
+    m = np.arange(len(C), dtype=np.int64)
+    for b, j in enumerate(near):
+        if j != b and near[j] == b and D[b, j] <= tol and side[b] * side[j] < 0:
+            m[b] = j
+    return m
+
+
 # ---------------------------------------------------------------------------------------------------
 # model surgery
 # ---------------------------------------------------------------------------------------------------

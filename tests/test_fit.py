@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 
 import numpy as np
@@ -447,6 +448,74 @@ def test_m_step_prunes_short_bones_and_keeps_the_loss(tiny_sequence, tmp_path):
     # 0 = the paper: nothing is pruned
     cfg.skeleton.min_bone_length = 0.0
     assert not m_step(f.model, f.opt, data, cfg, f.skel, cfg.skeleton.e1 + 1)
+
+
+def _lengths_vary(f, data, cfg):
+    """Each bone's relative length range over the clip (eq. 6 corrected), as the M-step measures it."""
+    from s3o_warp import skeleton as sk
+
+    X, W = f.model.verts.detach().double().numpy(), f.model.skinning().detach().double().numpy()
+    E = sk.bone_endpoints(X, W, f.skel.joints, t_r=cfg.skeleton.t_r, far_fraction=cfg.skeleton.far_fraction)
+    with torch.no_grad():
+        Lf = sk.bone_lengths_per_frame(E, f.model.posed_object(torch.arange(data.num_frames)).double().numpy())
+    return (Lf.max(0) - Lf.min(0)) / np.median(Lf, 0)
+
+
+@pytest.mark.parametrize("op", ["merge", "joint"])
+def test_m_step_decides_mirror_partners_by_the_better_seen_one(tiny_sequence, tmp_path, op, monkeypatch):
+    """With skeleton.mirror, a bone and its mirror partner across the symmetry plane get the decision of the
+    one seen moving in more frames. The tiny clip's far hind leg is never seen moving (its similarities are
+    -inf: never merged) while the near one merges into the hip; and the two legs' length ranges straddle a
+    t_d. Off, each decides on its own; on, the far leg follows the near one, and the loss does not jump."""
+    from s3o_warp import skeleton as sk
+    from s3o_warp.mstep import bone_motion_similarity, m_step
+
+    cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
+    sc = cfg.skeleton
+    sc.min_bone_length, sc.mirror, sc.mirror_tol, sc.merge_mode = 0.0, True, 0.1, "components"
+    X = f.model.verts.detach().double().numpy()
+    m = sk.mirror_partners(f.model.bone_centers.detach().double().numpy(), f.sym_plane, 0.1 * sk.size_of(X))
+    S, N = bone_motion_similarity(f.model, data, cfg)
+    seen = np.diag(N)
+    P, B0 = f.skel.parents, f.model.num_bones
+    pairs = [b for b in range(B0) if m[b] > b]
+    assert pairs, "the tiny clip's legs should give at least one mirrored bone pair at mirror_tol 0.1"
+    if op == "merge":  # t_o between a mirrored (child, parent) pair's similarities; no joints
+        sc.t_d = 1e9
+        cases = [(b, int(P[b])) for b in range(B0) if m[b] != b and P[b] >= 0
+                 and N[m[b], m[P[b]]] > N[b, P[b]] and S[m[b], m[P[b]]] > S[b, P[b]]]
+        assert cases, "expected a leg that its better-seen mirror partner lets merge"
+        b, p = cases[0]
+        sc.t_o = float(max(S[b, p], S[m[b], m[p]] - 0.02))
+        Sb = S.copy()
+        Sb[N[np.ix_(m, m)] > N] = S[np.ix_(m, m)][N[np.ix_(m, m)] > N]  # the rule, for the expected count
+        merges = lambda Sim: sum(1 for c in range(B0) if P[c] >= 0 and Sim[c, P[c]] > sc.t_o)  # noqa: E731
+        want_off, want_on = B0 - merges(S), B0 - merges(Sb)
+    else:  # t_d between a mirror pair's length ranges; no merges. The tiny mesh's leg bones own too few
+        # vertices to be cut (split_at_joints skips them), so the decision handed to it is compared
+        sc.t_o = 2.0
+        r = _lengths_vary(f, data, cfg)
+        b = max(pairs, key=lambda i: abs(r[i] - r[m[i]]) * (seen[i] != seen[m[i]]))
+        assert seen[b] != seen[m[b]] and r[b] != r[m[b]]
+        sc.t_d = float((r[b] + r[m[b]]) / 2)
+        split = r > sc.t_d
+        want_off, want_on = split, np.where(seen[m] > seen, split[m], split)
+        decided = []
+        real_split = sk.split_at_joints
+        monkeypatch.setattr(sk, "split_at_joints", lambda *a, **k: decided.append(np.asarray(a[6])) or real_split(*a, **k))
+    assert np.any(want_on != want_off)  # the case exercises a mirrored decision
+    g = copy.deepcopy(f)  # the same fitter, mirroring off
+    g.opt = g._make_optimizer()
+    g.cfg.skeleton.mirror = False
+    m_step(g.model, g.opt, data, g.cfg, g.skel, sc.e1 + 1, sym_plane=g.sym_plane)
+    before, loss0 = _posed_and_loss(f, frames)
+    m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1, sym_plane=f.sym_plane)
+    if op == "merge":
+        assert g.model.num_bones == want_off and f.model.num_bones == want_on == len(f.skel.parents)
+    else:
+        assert [d.tolist() for d in decided] == [want_off.tolist(), want_on.tolist()]
+    after, loss1 = _posed_and_loss(f, frames)
+    _assert_no_jump(before, after, loss0, loss1)
 
 
 def test_even_resampling_in_the_fit_keeps_the_render_and_the_loss(tiny_sequence, tmp_path):

@@ -332,6 +332,28 @@ def test_create_joints_leaves_no_half_shorter_than_min_length():
     assert not sk.create_joints(L, min_length=0.07).any()  # halves would be 0.0625 < 0.07
 
 
+def test_mirror_partners_pairs_mutual_reflections_within_tol():
+    """Two legs mirrored across z = 0 pair up; a bone on the plane, a bone without a partner and a bone whose
+    nearest reflection is taken by a closer one map to themselves; any rigid motion of bones and plane
+    together gives the same pairs."""
+    C = np.array([[0.0, 0.3, 0.5],  # 0 <-> 1
+                  [0.04, 0.3, -0.5],
+                  [1.0, 0.0, 0.02],  # near the plane: its own reflection is nearest
+                  [2.0, 0.0, 0.4],  # nothing near its reflection
+                  [0.1, 0.3, -0.5]])  # its reflection's nearest is 0, which pairs with 1 (0.04 away)
+    plane = (np.array([0.0, 0.0, 2.0]), 0.0)  # unnormalised normal
+    assert sk.mirror_partners(C, plane, tol=0.1).tolist() == [1, 0, 2, 3, 4]
+    assert sk.mirror_partners(C, plane, tol=0.01).tolist() == [0, 1, 2, 3, 4]  # 0 and 1: 0.04 apart
+    R = axis_angle_to_matrix(torch.tensor([0.3, -1.1, 0.7], dtype=torch.float64)).numpy()
+    t = np.array([0.5, -2.0, 1.0])
+    n = R @ np.array([0.0, 0.0, 1.0])
+    assert sk.mirror_partners(C @ R.T + t, (3.0 * n, 3.0 * float(n @ t)), tol=0.1).tolist() == [1, 0, 2, 3, 4]
+    with pytest.raises(ValueError, match="normal"):
+        sk.mirror_partners(C, (np.zeros(3), 0.0), tol=0.1)
+    with pytest.raises(ValueError, match="tol"):
+        sk.mirror_partners(C, plane, tol=-1.0)
+
+
 # -------------------------------------------------------------------------------------------------
 # shifting, growth, upsampling
 # -------------------------------------------------------------------------------------------------
