@@ -158,6 +158,9 @@ def _mirror(model, data, cfg, sym_plane, frames=None) -> tuple[np.ndarray, np.nd
     X = model.verts.detach().cpu().double().numpy()
     C = model.bone_centers.detach().cpu().double().numpy()
     m = sk.mirror_partners(C, sym_plane, sc.mirror_tol * sk.size_of(X))
+    paired = np.flatnonzero(m > np.arange(len(m)))
+    log.info("M-step: %d mirrored bone pairs of %d bones: %s", len(paired), len(m),
+             [(int(b), int(m[b])) for b in paired])
     return m, np.diag(frames).copy()
 
 
