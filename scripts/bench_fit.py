@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import platform
 import sys
@@ -95,6 +96,7 @@ def main(argv=None) -> int:
                     help="skeleton granularity study: fit once per merge threshold t_o (e.g. 0.99 0.95 0.90) and put the "
                          "three dominant-bone pictures side by side in renders/skeleton_t_o.png of the last run")
     args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")  # the fit's log (M-step edits) to stderr
 
     import torch
 
