@@ -220,7 +220,8 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int, sym_plane=No
                 log.info("M-step: merges of bones %s decided by their better-seen mirror partners", flip.tolist())
             S = np.where(Nm > N, S[np.ix_(m, m)], S)
         edit = sk.merge_bones(S, W, C, Q, state.parents, t_o=sc.t_o, mode=sc.merge_mode,
-                              temperature=sc.merge_temperature, extents=state.extents)
+                              temperature=sc.merge_temperature, extents=state.extents,
+                              partners=None if mirror is None else mirror[0])
         if _apply(model, opt, state, edit, "merge", epoch, sc):
             changed, mirror = True, _mirror(model, data, cfg, sym_plane)
         if sc.min_bone_length > 0 and len(state.joints):

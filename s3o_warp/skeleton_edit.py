@@ -547,6 +547,7 @@ def merge_bones(
     mode: Literal["greedy", "components"] = "greedy",
     temperature: float = 1.0,
     extents=None,
+    partners=None,
 ) -> SkeletonEdit:
     """Merge bones that move together (eqs. 8-9): ``min_f S(F_b', F_b'') > t_o`` for tree neighbours.
 
@@ -570,6 +571,10 @@ def merge_bones(
         mode: greedy pairs or connected components (see above).
         temperature: softmax temperature of the merge weights (1 = paper).
         extents: optional ``(B,)`` growth references; a merged bone gets the blend of its members'.
+        partners: optional ``(B,)`` mirror partners (:func:`mirror_partners`). Greedy mode then merges a
+            candidate pair and its mirror pair in the same call, when that is a candidate too: two mirrored
+            limbs hanging from one bone on the plane merge into it together, where the pairwise rule
+            would merge one side now and the other an M-step later.
 
     Returns:
         A :class:`SkeletonEdit` (merged bones take the index of their lowest member, others keep order).
@@ -600,15 +605,26 @@ def merge_bones(
             a = root[a]
         return a
 
+    M = None if partners is None else _np(partners, np.int64)
+    if M is not None:
+        _check(name, "partners", M, (B,))
+    is_cand = {(a, b) for _s, a, b in cand} | {(b, a) for _s, a, b in cand}
     used = np.zeros(B, bool)
     for _s, a, b in cand:
+        pairs = [(a, b)]
         if mode == "greedy":
             if used[a] or used[b]:
                 continue
-            used[a] = used[b] = True
-        ra, rb = find(a), find(b)
-        if ra != rb:
-            root[max(ra, rb)] = min(ra, rb)
+            if M is not None:
+                ma, mb = int(M[a]), int(M[b])
+                if {ma, mb} != {a, b} and (ma, mb) in is_cand and not any(used[i] for i in {ma, mb} - {a, b}):
+                    pairs.append((ma, mb))
+            for i, j in pairs:
+                used[i] = used[j] = True
+        for i, j in pairs:
+            ri, rj = find(i), find(j)
+            if ri != rj:
+                root[max(ri, rj)] = min(ri, rj)
     groups: dict[int, list[int]] = {}
     for b in range(B):
         groups.setdefault(find(b), []).append(b)

@@ -271,6 +271,35 @@ def test_merge_modes_and_log_space_weights_do_not_overflow():
     assert 0.1 < [wi for _, wi in soft.sources[0]][1] < 0.9
 
 
+def test_greedy_merge_takes_a_pair_and_its_mirror_pair_together():
+    """Body bone 0 on the plane, mirrored legs 1 | 2 hanging from it, each with a lower bone 3 | 4. Greedy merges
+    each bone once per call, so of the two legs moving with the body only one merges; with the partners both
+    do, and the lower bones (not candidates) stay."""
+    rng = np.random.default_rng(8)
+    labels = rng.choice(5, 500)
+    W = _hard_weights(labels, 5)
+    C = np.array([[0.0, 0, 0], [0, -1, 0.3], [0, -1, -0.3], [0, -2, 0.3], [0, -2, -0.3]])
+    Q = np.stack([np.eye(3)] * 5)
+    parents = np.array([-1, 0, 0, 1, 2])
+    Sim = np.full((5, 5), 0.5)
+    Sim[0, 1] = Sim[1, 0] = 0.99
+    Sim[0, 2] = Sim[2, 0] = 0.98
+    np.fill_diagonal(Sim, 1.0)
+    m = sk.mirror_partners(C, (np.array([0.0, 0, 1]), 0.0), tol=0.1)
+    assert m.tolist() == [0, 2, 1, 4, 3]
+    plain = sk.merge_bones(Sim, W, C, Q, parents, t_o=0.95)
+    both = sk.merge_bones(Sim, W, C, Q, parents, t_o=0.95, partners=m)
+    assert [[i for i, _ in src] for src in plain.sources] == [[0, 1], [2], [3], [4]]
+    assert [[i for i, _ in src] for src in both.sources] == [[0, 1, 2], [3], [4]]
+    assert both.parents.tolist() == [-1, 0, 0]
+    # the mirror pair is only taken along when it is a candidate itself
+    Sim[0, 2] = Sim[2, 0] = 0.9
+    assert [[i for i, _ in src] for src in sk.merge_bones(Sim, W, C, Q, parents, t_o=0.95, partners=m).sources] == \
+        [[0, 1], [2], [3], [4]]
+    with pytest.raises(ValueError, match="partners"):
+        sk.merge_bones(Sim, W, C, Q, parents, partners=m[:3])
+
+
 def _short_middle(n_long=100, n_short=5):
     """Bones 0 | 1 | 2 along x with hard weights: 0 on [0, 1), 1 (short, few vertices) on [1, 1.05), 2 on [1.05, 2]."""
     rng = np.random.default_rng(21)
