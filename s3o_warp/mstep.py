@@ -147,7 +147,7 @@ def bone_length_variation(model, data, state: SkeletonState, cfg) -> np.ndarray:
 
 
 def _mirror(model, data, cfg, sym_plane, frames=None) -> tuple[np.ndarray, np.ndarray] | None:
-    """The bones' mirror partners ``m`` (:func:`s3o_warp.skeleton.mirror_partners`) and the frames each bone is
+    """The bones' mirror partners ``m`` (:func:`s3o_warp.skeleton.mirror_partners` of the parts' centroids) and the frames each bone is
     seen moving (the diagonal of ``frames``, the usable-frame counts of :func:`bone_motion_similarity`, computed
     when not given); None when mirroring is off."""
     sc = cfg.skeleton
@@ -155,9 +155,10 @@ def _mirror(model, data, cfg, sym_plane, frames=None) -> tuple[np.ndarray, np.nd
         return None
     if frames is None:
         frames = bone_motion_similarity(model, data, cfg)[1]
-    X = model.verts.detach().cpu().double().numpy()
+    X, W = _xw(model)
     C = model.bone_centers.detach().cpu().double().numpy()
-    m = sk.mirror_partners(C, sym_plane, sc.mirror_tol * sk.size_of(X))
+    # the parts' centroids (eq. 5), not the free centres: those drift off their parts after the shifting ends
+    m = sk.mirror_partners(sk.shift_bones(X, W, C), sym_plane, sc.mirror_tol * sk.size_of(X))
     paired = np.flatnonzero(m > np.arange(len(m)))
     log.info("M-step: %d mirrored bone pairs of %d bones: %s", len(paired), len(m),
              [(int(b), int(m[b])) for b in paired])
