@@ -133,7 +133,7 @@ def bone_motion_similarity(model, data, cfg) -> tuple[np.ndarray, np.ndarray]:
 
 
 @torch.no_grad()
-def bone_length_variation(model, data, state: SkeletonState, cfg) -> np.ndarray:
+def bone_length_variation(model, data, state: SkeletonState, cfg) -> tuple[np.ndarray, np.ndarray]:
     """Which bones' lengths vary over frames (eq. 6 corrected), ``(B,)`` bool, and the endpoints used."""
     sc = cfg.skeleton
     X, W = _xw(model)
@@ -147,9 +147,9 @@ def bone_length_variation(model, data, state: SkeletonState, cfg) -> np.ndarray:
 
 
 def _mirror(model, data, cfg, sym_plane, frames=None) -> tuple[np.ndarray, np.ndarray] | None:
-    """The bones' mirror partners ``m`` (:func:`s3o_warp.skeleton.mirror_partners` of the parts' centroids) and the frames each bone is
-    seen moving (the diagonal of ``frames``, the usable-frame counts of :func:`bone_motion_similarity`, computed
-    when not given); None when mirroring is off."""
+    """The bones' mirror partners ``m`` (:func:`s3o_warp.skeleton.mirror_partners` of the parts' centroids)
+    and the frames each bone is seen moving (the diagonal of ``frames``, the usable-frame counts of
+    :func:`bone_motion_similarity`, computed when not given); None when mirroring is off."""
     sc = cfg.skeleton
     if sym_plane is None or not sc.mirror:
         return None

@@ -503,7 +503,8 @@ def test_m_step_decides_mirror_partners_by_the_better_seen_one(tiny_sequence, tm
         want_off, want_on = split, np.where(seen[m] > seen, split[m], split)
         decided = []
         real_split = sk.split_at_joints
-        monkeypatch.setattr(sk, "split_at_joints", lambda *a, **k: decided.append(np.asarray(a[6])) or real_split(*a, **k))
+        monkeypatch.setattr(sk, "split_at_joints",
+                            lambda *a, **k: decided.append(np.asarray(a[6])) or real_split(*a, **k))
     assert np.any(want_on != want_off)  # the case exercises a mirrored decision
     g = copy.deepcopy(f)  # the same fitter, mirroring off
     g.opt = g._make_optimizer()
