@@ -239,8 +239,8 @@ class SkeletonConfig:
     frames. A far-side leg is seen less than its partner, so on its own it keeps or loses joints by what little
     the camera saw of it. false = each bone decides on its own (the paper)."""
     mirror_tol: float = 0.05
-    """Bones are mirror partners when one's centre reflected lies within this fraction of the canonical mesh's
-    bbox diagonal of the other's (mutual nearest, opposite sides of the plane)."""
+    """Bones are mirror partners when one's part centroid reflected lies within this fraction of the canonical
+    mesh's bbox diagonal of the other's (mutual nearest, opposite sides of the plane)."""
     centre_joints: bool = True
     """Then move each joint into the body: to the middle of a thin limb's cross-section, at most joint_depth
     below the surface of a thick part (the mean above sits on the surface when the shared vertices are on

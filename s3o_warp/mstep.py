@@ -146,15 +146,12 @@ def bone_length_variation(model, data, state: SkeletonState, cfg) -> tuple[np.nd
     return sk.create_joints(np.concatenate(lengths, 0), t_d=sc.t_d, min_length=sc.min_bone_length * sk.size_of(X)), E
 
 
-def _mirror(model, data, cfg, sym_plane, frames=None) -> tuple[np.ndarray, np.ndarray] | None:
+def _mirror(model, cfg, sym_plane, seen: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """The bones' mirror partners ``m`` (:func:`s3o_warp.skeleton.mirror_partners` of the parts' centroids)
-    and the frames each bone is seen moving (the diagonal of ``frames``, the usable-frame counts of
-    :func:`bone_motion_similarity`, computed when not given); None when mirroring is off."""
+    and ``seen``, the frames each bone is seen moving; None when mirroring is off."""
     sc = cfg.skeleton
     if sym_plane is None or not sc.mirror:
         return None
-    if frames is None:
-        frames = bone_motion_similarity(model, data, cfg)[1]
     X, W = _xw(model)
     C = model.bone_centers.detach().cpu().double().numpy()
     # the parts' centroids (eq. 5), not the free centres: those drift off their parts after the shifting ends
@@ -162,7 +159,15 @@ def _mirror(model, data, cfg, sym_plane, frames=None) -> tuple[np.ndarray, np.nd
     paired = np.flatnonzero(m > np.arange(len(m)))
     log.info("M-step: %d mirrored bone pairs of %d bones: %s", len(paired), len(m),
              [(int(b), int(m[b])) for b in paired])
-    return m, np.diag(frames).copy()
+    return m, seen
+
+
+def _seen_after(mirror, edit) -> np.ndarray | None:
+    """The frames each bone of an applied edit is seen moving: the best-seen of the old bones it came from
+    (no second pass over the flow)."""
+    if mirror is None:
+        return None
+    return np.array([max(mirror[1][i] for i, _w in src) for src in edit.sources], dtype=mirror[1].dtype)
 
 
 def _from_mirror(own: np.ndarray, seen: np.ndarray, m: np.ndarray, what: str) -> np.ndarray:
@@ -212,7 +217,7 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int, sym_plane=No
             changed |= _apply(model, opt, state, edit, "upsample", epoch, sc)
     else:
         S, N = bone_motion_similarity(model, data, cfg)
-        mirror = _mirror(model, data, cfg, sym_plane, N)
+        mirror = _mirror(model, cfg, sym_plane, np.diag(N).copy())
         if mirror is not None:  # a pair's similarity from the better-seen of it and its mirror image
             m = mirror[0]
             Nm = N[np.ix_(m, m)]
@@ -224,7 +229,7 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int, sym_plane=No
                               temperature=sc.merge_temperature, extents=state.extents,
                               partners=None if mirror is None else mirror[0])
         if _apply(model, opt, state, edit, "merge", epoch, sc):
-            changed, mirror = True, _mirror(model, data, cfg, sym_plane)
+            changed, mirror = True, _mirror(model, cfg, sym_plane, _seen_after(mirror, edit))
         if sc.min_bone_length > 0 and len(state.joints):
             X, W = _xw(model)
             C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
@@ -235,7 +240,7 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int, sym_plane=No
             edit = sk.prune_short_bones(L, sc.min_bone_length * sk.size_of(X), W, C, Q,
                                         state.parents, extents=state.extents)
             if _apply(model, opt, state, edit, "prune", epoch, sc):
-                changed, mirror = True, _mirror(model, data, cfg, sym_plane)
+                changed, mirror = True, _mirror(model, cfg, sym_plane, _seen_after(mirror, edit))
         if len(state.joints):
             split, E = bone_length_variation(model, data, state, cfg)
             if mirror is not None:

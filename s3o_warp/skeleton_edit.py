@@ -608,7 +608,7 @@ def merge_bones(
     M = None if partners is None else _np(partners, np.int64)
     if M is not None:
         _check(name, "partners", M, (B,))
-    is_cand = {(a, b) for _s, a, b in cand} | {(b, a) for _s, a, b in cand}
+        is_cand = {(a, b) for _s, a, b in cand} | {(b, a) for _s, a, b in cand}
     used = np.zeros(B, bool)
     for _s, a, b in cand:
         pairs = [(a, b)]
@@ -714,7 +714,8 @@ def mirror_partners(centers, plane, tol: float) -> np.ndarray:
     less, so on its own it loses joints its near-side partner keeps.
 
     Args:
-        centers: ``(B, 3)`` bone centres C in the canonical object frame.
+        centers: ``(B, 3)`` one point per bone in the canonical object frame (the M-step passes the parts'
+            centroids, :func:`shift_bones`).
         plane: ``(normal (3,), offset)``; the normal need not be unit length.
         tol: largest distance between a reflected centre and its partner's centre (object units).
     """
