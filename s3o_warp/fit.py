@@ -9,6 +9,7 @@ boundaries and every ``output.checkpoint_every`` steps; ``resume=True`` continue
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -1034,20 +1035,39 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
     except OSError as e:
         raise InputError(f"run directory {out_dir} cannot be created ({e.strerror}); choose another --out") from None
     save_toml(cfg, out_dir / "config.toml")
-    coarse_res = coarse_model(data, cfg)
-    fitter = Fitter(data, coarse_res, cfg, out_dir, device)
-    ck = latest_checkpoint(out_dir) if resume else None
-    if resume and ck is None:
-        log.warning("--resume: no checkpoint in %s, starting from the beginning", out_dir / "checkpoints")
-    if ck is not None:
-        log.info("resuming from %s", ck)
-        fitter.load_checkpoint(ck)
-    elif (out_dir / "log.jsonl").exists():
-        (out_dir / "log.jsonl").unlink()
-    if fitter.phase != "done":
-        with _stop_on_signals(fitter):
-            fitter.run()
-    return write_outputs(fitter)
+    with repeatable(cfg.repeatable and device.type == "cpu"):
+        coarse_res = coarse_model(data, cfg)
+        fitter = Fitter(data, coarse_res, cfg, out_dir, device)
+        ck = latest_checkpoint(out_dir) if resume else None
+        if resume and ck is None:
+            log.warning("--resume: no checkpoint in %s, starting from the beginning", out_dir / "checkpoints")
+        if ck is not None:
+            log.info("resuming from %s", ck)
+            fitter.load_checkpoint(ck)
+        elif (out_dir / "log.jsonl").exists():
+            (out_dir / "log.jsonl").unlink()
+        if fitter.phase != "done":
+            with _stop_on_signals(fitter):
+                fitter.run()
+        return write_outputs(fitter)
+
+
+@contextlib.contextmanager
+def repeatable(enabled: bool = True):
+    """Torch's deterministic algorithms inside the block (``cfg.repeatable``), the caller's setting restored after.
+
+    On the CPU the backward of indexing (``index_put_`` with ``accumulate=True``) otherwise sums in the
+    order its threads finish, so two runs of one seed part in the last bits and then for good.
+    """
+    if not enabled:
+        yield
+        return
+    was, warn = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(was, warn_only=warn)
 
 
 class _stop_on_signals:

@@ -132,11 +132,10 @@ def _final_params(run):
     return st["model"]
 
 
-def test_resume_after_interrupt_matches_uninterrupted_and_seed_repeats(tiny_sequence, tmp_path, monkeypatch):
+def test_resume_after_interrupt_matches_uninterrupted(tiny_sequence, tmp_path, monkeypatch):
     cfg = _cfg(**{"coarse.steps": 6, "motion.warmup_steps": 6, "motion.steps": 8})
-    a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
+    a, b = tmp_path / "a", tmp_path / "b"
     fit(tiny_sequence, a, cfg, torch.device("cpu"))
-    fit(tiny_sequence, c, cfg, torch.device("cpu"))
 
     orig = Fitter.motion_losses
     calls = {"n": 0}
@@ -153,10 +152,30 @@ def test_resume_after_interrupt_matches_uninterrupted_and_seed_repeats(tiny_sequ
     monkeypatch.setattr(Fitter, "motion_losses", orig)
     fit(tiny_sequence, b, cfg, torch.device("cpu"), resume=True)
 
-    pa, pb, pc = _final_params(a), _final_params(b), _final_params(c)
+    pa, pb = _final_params(a), _final_params(b)
     for k in pa:
         torch.testing.assert_close(pb[k], pa[k], rtol=0, atol=1e-6, msg=f"resume differs in {k}")
-        torch.testing.assert_close(pc[k], pa[k], rtol=0, atol=0, msg=f"same seed differs in {k}")
+
+
+def test_same_seed_repeats_bit_for_bit_on_threads(tiny_sequence, tmp_path):
+    """Two fits of one seed give the same parameters (``repeatable``); torch's setting is the caller's after.
+
+    Measured with ``repeatable=false`` (2 threads): this 40-step fit at 96 px crops parts from its rerun in
+    every parameter (bone counts too) in 3 of 3 pairs; the threaded backward of indexing adds in thread order.
+    """
+    cfg = _cfg(**{"coarse.steps": 6, "motion.warmup_steps": 20, "motion.steps": 20, "data.crop_size": 96})
+    threads = torch.get_num_threads()
+    torch.set_num_threads(max(2, threads))  # the race needs two threads
+    try:
+        fit(tiny_sequence, tmp_path / "a", cfg, torch.device("cpu"))
+        fit(tiny_sequence, tmp_path / "b", cfg, torch.device("cpu"))
+    finally:
+        torch.set_num_threads(threads)
+    assert not torch.are_deterministic_algorithms_enabled()
+    pa, pb = _final_params(tmp_path / "a"), _final_params(tmp_path / "b")
+    assert pa.keys() == pb.keys()
+    differ = [k for k in pa if pa[k].shape != pb[k].shape or not torch.equal(pa[k], pb[k])]
+    assert not differ, f"same seed, different {differ}"
 
 
 def test_resume_refuses_a_checkpoint_of_another_sequence(tiny_sequence, tmp_path):
