@@ -77,6 +77,13 @@ class CoarseConfig:
     """Move vertices only in the canonical frame's image plane (x, y): one view says nothing about depth."""
     large_steps: float = 0.0
     """Laplacian-preconditioned vertex steps (Nicolet et al. 2021), lambda of I + lambda L; 0 = plain Adam."""
+    refit_bones: bool = True
+    """After the coarse fit, move each bone to its part (the faces its 2D edge labels, which the part-silhouette
+    loss placed): centre to the part's area centroid, long axis to its principal axis, radii kept. The lift's
+    bone is the straight chord of its 2D edge, and a curved part (a tail rising from the rump) leaves it
+    behind, outside the Gaussian, so the body's bone takes the part; false = the lift's bones as they are."""
+    refit_min_faces: int = 4
+    """refit_bones leaves a bone whose part has fewer faces than this as the lift made it."""
 
 
 @dataclass

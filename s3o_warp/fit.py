@@ -386,6 +386,23 @@ class Fitter:
         log.warning("%s is NaN/Inf at %s step %d: step skipped, rolled back, learning rates x%g",
                     what, self.phase, self.step, mc.nan_lr_factor)
 
+    @torch.no_grad()
+    def refit_bones_to_parts(self) -> None:
+        """``coarse.refit_bones``: each bone onto its coarse part's faces (``skeleton_edit.fit_bones_to_parts``)."""
+        from s3o_warp.skeleton_edit import fit_bones_to_parts, precision_to_quat_scales
+
+        m = self.model
+        C0 = m.bone_centers.detach().cpu().double().numpy()
+        C, Q, moved = fit_bones_to_parts(m.verts.detach().cpu(), m.faces.cpu(), self.coarse.face_parts.cpu(), C0,
+                                         m.precisions().detach().cpu(), self.cfg.coarse.refit_min_faces)
+        quats, log_scales = precision_to_quat_scales(Q)
+        m.bone_centers.copy_(torch.as_tensor(C).to(m.bone_centers))
+        m.bone_quat.copy_(torch.as_tensor(quats).to(m.bone_quat))
+        m.bone_log_scales.copy_(torch.as_tensor(log_scales).to(m.bone_log_scales))
+        d = np.linalg.norm(C - C0, axis=1)[moved]
+        log.info("bones refit to their coarse parts: %d of %d moved, by at most %.3g (mean %.3g)", int(moved.sum()),
+                 len(C), d.max() if len(d) else 0.0, d.mean() if len(d) else 0.0)
+
     def request_stop(self) -> None:
         """Ask the loop to checkpoint and stop at the next step boundary (safe from a signal handler)."""
         self._stop = True
@@ -603,6 +620,8 @@ class Fitter:
                        "what": "initial", "iou_all_frames": self.hard_iou()})
         for phase in PHASES[PHASES.index(self.phase):]:
             if phase != self.phase:
+                if self.phase == "coarse" and self.cfg.coarse.refit_bones:
+                    self.refit_bones_to_parts()
                 if phase == "joint" and self.cfg.motion.resolve_crossings:
                     self.resolve_crossings()
                 self.phase, self.step = phase, 0

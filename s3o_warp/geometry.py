@@ -60,18 +60,30 @@ def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
 
 
 def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices ``(..., 3, 3)`` -> quaternions (w, x, y, z) with w >= 0 (for inits and I/O)."""
+    """Rotation matrices ``(..., 3, 3)`` -> quaternions (w, x, y, z) with w >= 0 (for inits and I/O).
+
+    Shepperd's method: the largest of |w|, |x|, |y|, |z| comes from the diagonal and the others from
+    sums and differences of the off-diagonal pairs divided by it. Taking every sign from the
+    differences alone loses the relative signs of x, y, z near a half turn (the differences vanish), so
+    a tilted Gaussian's axis came back mirrored.
+    """
     m = R.double()
-    tr = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
-    qw = torch.sqrt((1 + tr).clamp_min(0)) / 2
-    qx = torch.sqrt((1 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2]).clamp_min(0)) / 2
-    qy = torch.sqrt((1 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2]).clamp_min(0)) / 2
-    qz = torch.sqrt((1 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2]).clamp_min(0)) / 2
-    qx = torch.copysign(qx, m[..., 2, 1] - m[..., 1, 2])
-    qy = torch.copysign(qy, m[..., 0, 2] - m[..., 2, 0])
-    qz = torch.copysign(qz, m[..., 1, 0] - m[..., 0, 1])
-    q = torch.stack([qw, qx, qy, qz], -1)
-    return (q / q.norm(dim=-1, keepdim=True)).to(R.dtype)
+    m00, m01, m02 = m[..., 0, 0], m[..., 0, 1], m[..., 0, 2]
+    m10, m11, m12 = m[..., 1, 0], m[..., 1, 1], m[..., 1, 2]
+    m20, m21, m22 = m[..., 2, 0], m[..., 2, 1], m[..., 2, 2]
+    # 4 x the square of each component, then each candidate row built around one component (times 4 * it)
+    sq = torch.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1)
+    cand = torch.stack([
+        torch.stack([sq[..., 0], m21 - m12, m02 - m20, m10 - m01], -1),
+        torch.stack([m21 - m12, sq[..., 1], m01 + m10, m02 + m20], -1),
+        torch.stack([m02 - m20, m01 + m10, sq[..., 2], m12 + m21], -1),
+        torch.stack([m10 - m01, m02 + m20, m12 + m21, sq[..., 3]], -1),
+    ], -2)  # (..., 4, 4): row k = 4 q_k q
+    k = sq.argmax(-1)
+    q = torch.take_along_dim(cand, k[..., None, None].expand(k.shape + (1, 4)), dim=-2)[..., 0, :]
+    q = q / q.norm(dim=-1, keepdim=True)
+    q = torch.where(q[..., :1] < 0, -q, q)
+    return q.to(R.dtype)
 
 
 def project(verts: torch.Tensor, K: torch.Tensor) -> torch.Tensor:

@@ -230,6 +230,63 @@ def shift_bones(verts, weights, centers) -> np.ndarray:
     return out
 
 
+def fit_bones_to_parts(verts, faces, face_parts, centers, precisions, min_faces: int = 4):
+    """Each bone onto its labelled part: centre to the part's area centroid, long axis to its principal axis.
+
+    The coarse phase's bones are chords of the 2D skeleton's edges, and its part-silhouette loss moves each
+    edge's faces onto that edge's pixels: a curved part (a tail rising from the rump) ends up beside its
+    chord, outside the bone's Gaussian, and the body's wider Gaussian takes its vertices. Bone b's part is
+    the faces with ``face_parts == b``; a part of fewer than ``min_faces`` faces (or no area) leaves its
+    bone as it is. The precision is turned by the smallest rotation that takes its long axis (the
+    eigenvector of its smallest eigenvalue) onto the part's principal axis, so the radii are kept.
+
+    Args:
+        verts: ``(N, 3)`` canonical vertices.
+        faces: ``(F, 3)`` vertex indices.
+        face_parts: ``(F,)`` bone index of each face (< 0 or >= B: no bone).
+        centers: ``(B, 3)`` bone centres C.
+        precisions: ``(B, 3, 3)`` precisions Q.
+        min_faces: the fewest faces a part needs to move its bone.
+
+    Returns:
+        ``(centers (B, 3), precisions (B, 3, 3), moved (B,) bool)``, float64.
+    """
+    X = _np(verts)
+    Fc = np.asarray(faces, dtype=np.int64)
+    fp = np.asarray(face_parts, dtype=np.int64).reshape(-1)
+    C, Q = _np(centers).copy(), _np(precisions).copy()
+    B = C.shape[0]
+    _check("fit_bones_to_parts", "verts", X, (None, 3))
+    _check("fit_bones_to_parts", "faces", Fc, (None, 3))
+    _check("fit_bones_to_parts", "centers", C, (None, 3))
+    _check("fit_bones_to_parts", "precisions", Q, (B, 3, 3))
+    if len(fp) != len(Fc):
+        raise ValueError(f"fit_bones_to_parts(): face_parts has {len(fp)} entries for {len(Fc)} faces; "
+                         "pass one part index per face")
+    tri = X[Fc]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    mid = tri.mean(1)
+    moved = np.zeros(B, bool)
+    for b in range(B):
+        sel = fp == b
+        w = area[sel]
+        if sel.sum() < min_faces or not w.sum() > 0:
+            continue
+        c = (w[:, None] * mid[sel]).sum(0) / w.sum()
+        d = mid[sel] - c
+        axis = np.linalg.eigh((w[:, None, None] * d[:, :, None] * d[:, None, :]).sum(0) / w.sum())[1][:, -1]
+        lam, U = np.linalg.eigh(0.5 * (Q[b] + Q[b].T))
+        old = U[:, 0]  # the long axis: the smallest precision
+        if axis @ old < 0:
+            axis = -axis
+        v, cth = np.cross(old, axis), float(old @ axis)
+        K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+        R = np.eye(3) + K + K @ K / (1 + cth)  # Rodrigues: old -> axis (cth > 0 after the flip)
+        C[b], Q[b] = c, R @ Q[b] @ R.T
+        moved[b] = True
+    return C, 0.5 * (Q + np.transpose(Q, (0, 2, 1))), moved
+
+
 # ---------------------------------------------------------------------------------------------------
 # splitting machinery (growth, upsampling, joint creation)
 # ---------------------------------------------------------------------------------------------------

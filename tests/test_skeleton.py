@@ -400,6 +400,62 @@ def test_shift_moves_centre_to_part_centroid():
     np.testing.assert_array_equal(out[2], C[2])
 
 
+def test_fit_bones_to_parts_moves_a_tail_bone_onto_its_tilted_part():
+    """A body capsule along x and a tail capsule rising from its end; the tail bone starts on the horizontal chord
+    below the tail (as a lift from a 2D chord leaves it), so the body's wide Gaussian owns the tail. Fitted to
+    the tail's labelled faces, the bone sits at their area centroid, along their axis, radii kept, and owns them."""
+    import trimesh
+
+    from s3o_warp.kernels.skinning import skinning_weights
+
+    body = trimesh.creation.capsule(height=1.6, radius=0.25, count=[16, 16])
+    body.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))  # along x
+    tail = trimesh.creation.capsule(height=0.5, radius=0.04, count=[12, 12])
+    tilt = np.radians(35.0)
+    axis = np.array([-np.cos(tilt), np.sin(tilt), 0.0])
+    R = trimesh.geometry.align_vectors([0, 0, 1], axis)
+    tail.apply_transform(R)
+    tail.apply_translation(np.array([-1.05, 0.0, 0.0]) + 0.3 * axis)
+    mesh = trimesh.util.concatenate([body, tail])
+    parts = np.r_[np.zeros(len(body.faces), int), np.ones(len(tail.faces), int)]
+    tail_verts = np.arange(len(body.vertices), len(mesh.vertices))
+    r_long, r_short = 0.3, 0.04
+
+    def ellipsoid_q(direction, radii):
+        d = np.asarray(direction, float) / np.linalg.norm(direction)
+        return 2.0 * (np.eye(3) / radii[1] ** 2 + (1 / radii[0] ** 2 - 1 / radii[1] ** 2) * np.outer(d, d))
+
+    C = np.array([[0.0, 0.0, 0.0], [-1.35, 0.0, 0.0]])  # the tail bone on the horizontal chord
+    Q = np.stack([ellipsoid_q([1, 0, 0], (1.1, 0.3)), ellipsoid_q([1, 0, 0], (r_long, r_short))])
+
+    def owners(C, Q):
+        f32 = dict(dtype=torch.float32)
+        W = skinning_weights(torch.as_tensor(mesh.vertices, **f32), torch.as_tensor(C, **f32), torch.as_tensor(Q, **f32))
+        return W.argmax(1).numpy()
+
+    assert (owners(C, Q)[tail_verts] == 1).mean() < 0.5  # the chord's bone misses its part
+    C2, Q2, moved = sk.fit_bones_to_parts(mesh.vertices, mesh.faces, parts, C, Q, min_faces=4)
+    assert moved.all()
+    tri = mesh.vertices[mesh.faces[parts == 1]]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    np.testing.assert_allclose(C2[1], (area[:, None] * tri.mean(1)).sum(0) / area.sum(), atol=1e-12)
+    lam, U = np.linalg.eigh(Q2[1])
+    np.testing.assert_allclose(lam, np.linalg.eigvalsh(Q[1]), rtol=1e-10)  # radii kept
+    assert abs(U[:, 0] @ axis) > 0.999  # long axis along the tail
+    # the outer half of the tail (the base half shares the body's Gaussian): before, the body's; after, the tail's
+    along = (mesh.vertices[tail_verts] - np.array([-1.05, 0.0, 0.0])) @ axis
+    outer = tail_verts[along > 0.3]
+    assert (owners(C, Q)[outer] == 1).mean() < 0.2
+    assert (owners(C2, Q2)[outer] == 1).mean() > 0.95
+    # a part with fewer faces than min_faces keeps its bone; so does a bone no face names
+    C3, Q3, moved3 = sk.fit_bones_to_parts(mesh.vertices, mesh.faces, np.where(parts == 1, 5, 0), C, Q, min_faces=4)
+    assert moved3.tolist() == [True, False]
+    np.testing.assert_array_equal(C3[1], C[1])
+    np.testing.assert_array_equal(Q3[1], Q[1])
+    with pytest.raises(ValueError, match="face_parts"):
+        sk.fit_bones_to_parts(mesh.vertices, mesh.faces, parts[:-1], C, Q)
+
+
 def _limb(length, n=200, seed=7):
     """Torso blob at the origin (bone 0) and a limb from x=1 to x=1+length (bone 1, a leaf)."""
     rng = np.random.default_rng(seed)
@@ -579,6 +635,44 @@ def test_precision_round_trip():
 
     V = quat_to_matrix(torch.tensor(q)).numpy()
     np.testing.assert_allclose(np.transpose(V, (0, 2, 1)) @ (np.exp(ls)[..., None] * V), Q, atol=1e-10)
+
+
+def test_precision_round_trip_of_tilted_limbs():
+    """Thin Gaussians along tilted directions (a tail, a neck), two equal short axes: eigh's axes often make a
+    half turn, where a quaternion taking its signs from the off-diagonal differences mirrors the long axis."""
+    from s3o_warp.geometry import quat_to_matrix
+
+    a = np.linspace(-np.pi, np.pi, 73)
+    long_axis = np.stack([np.cos(a), np.sin(a), np.where(np.arange(len(a)) % 2 == 0, 0.0, 0.3 * np.sin(3 * a))], 1)
+    long_axis /= np.linalg.norm(long_axis, axis=1, keepdims=True)
+    Q = 2.0 * (np.eye(3) / 0.03**2 + (1 / 0.2**2 - 1 / 0.03**2) * long_axis[:, :, None] * long_axis[:, None, :])
+    q, ls = sk.precision_to_quat_scales(Q)
+    V = quat_to_matrix(torch.tensor(q)).numpy()
+    back = np.transpose(V, (0, 2, 1)) @ (np.exp(ls)[..., None] * V)
+    np.testing.assert_allclose(back, Q, rtol=0, atol=1e-8 * np.abs(Q).max())
+    # the coarse model's path: eigh's axes as float32 rows into S3OModel's quaternions
+    lam, U = np.linalg.eigh(Q)
+    V = np.transpose(U, (0, 2, 1)).copy()
+    V[np.linalg.det(V) < 0, 2] *= -1
+    q32 = matrix_to_quat(torch.as_tensor(V, dtype=torch.float32))
+    V32 = quat_to_matrix(q32.double()).numpy()
+    back = np.transpose(V32, (0, 2, 1)) @ (lam[..., None] * V32)
+    np.testing.assert_allclose(back, Q, rtol=0, atol=1e-5 * np.abs(Q).max())
+
+
+def test_matrix_to_quat_round_trips_half_turns():
+    g = torch.Generator().manual_seed(3)
+    axis = torch.nn.functional.normalize(torch.randn(600, 3, generator=g, dtype=torch.float64), dim=1)
+    angle = torch.cat([torch.full((200,), np.pi, dtype=torch.float64),
+                       np.pi - 1e-4 * torch.rand(200, generator=g, dtype=torch.float64),
+                       np.pi * torch.rand(200, generator=g, dtype=torch.float64)])
+    R = axis_angle_to_matrix(axis * angle[:, None])
+    q = matrix_to_quat(R)
+    from s3o_warp.geometry import quat_to_matrix
+
+    torch.testing.assert_close(quat_to_matrix(q), R, rtol=0, atol=1e-12)
+    assert (q[:, 0] >= 0).all()
+    torch.testing.assert_close(q.norm(dim=1), torch.ones(600, dtype=torch.float64))
 
 
 # -------------------------------------------------------------------------------------------------
