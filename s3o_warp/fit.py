@@ -388,10 +388,15 @@ class Fitter:
 
     @torch.no_grad()
     def refit_bones_to_parts(self) -> None:
-        """``coarse.refit_bones``: each bone onto its coarse part's faces (``skeleton_edit.fit_bones_to_parts``)."""
+        """``coarse.refit_bones``: each bone onto its coarse part's faces (``skeleton_edit.fit_bones_to_parts``).
+
+        Only the lift's bones have parts: with ``skeleton.method=virtual`` (k-means bones) nothing moves.
+        """
         from s3o_warp.skeleton_edit import fit_bones_to_parts, precision_to_quat_scales
 
         m = self.model
+        if self.cfg.skeleton.method != "s3o" or m.bone_centers.shape[0] != len(self.coarse.parents):
+            return
         C0 = m.bone_centers.detach().cpu().double().numpy()
         C, Q, moved = fit_bones_to_parts(m.verts.detach().cpu(), m.faces.cpu(), self.coarse.face_parts.cpu(), C0,
                                          m.precisions().detach().cpu(), self.cfg.coarse.refit_min_faces)

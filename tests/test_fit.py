@@ -67,6 +67,34 @@ def test_small_fit_raises_iou_and_writes_the_run_directory(tiny_sequence, tmp_pa
     _check_skeleton_shape(run, tiny_sequence, metrics)
 
 
+@pytest.mark.parametrize("method", ["s3o", "virtual"])
+def test_bones_refit_to_their_coarse_parts_only_for_the_lift(tiny_sequence, tmp_path, method):
+    """After the coarse fit the lift's bones move onto their labelled parts; the virtual baseline's k-means
+    bones have no parts and stay where k-means put them, and its short fit runs through."""
+    from s3o_warp.skeleton_edit import fit_bones_to_parts
+
+    cfg = _cfg(**{"coarse.steps": 4, "motion.warmup_steps": 4, "motion.steps": 4, "skeleton.method": method,
+                  "skeleton.virtual_bones": 6})
+    data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
+    res = coarse_model(data, cfg)
+    (tmp_path / "run").mkdir()
+    fitter = Fitter(data, res, cfg, tmp_path / "run", torch.device("cpu"))
+    m = fitter.model
+    C0, Q0 = m.bone_centers.detach().clone(), m.precisions().detach().clone()
+    fitter.refit_bones_to_parts()
+    if method == "virtual":
+        assert C0.shape[0] == 6
+        torch.testing.assert_close(m.bone_centers, C0, rtol=0, atol=0)
+        torch.testing.assert_close(m.precisions(), Q0, rtol=0, atol=0)
+        fitter.run()
+        assert (fitter.skel.parents == np.r_[-1, np.zeros(5, int)]).all()
+        return
+    C, Q, moved = fit_bones_to_parts(m.verts.detach(), m.faces, res.face_parts, C0, Q0, cfg.coarse.refit_min_faces)
+    assert moved.sum() >= len(moved) // 2 and np.abs(C - C0.numpy()).max() > 1e-3
+    np.testing.assert_allclose(m.bone_centers.detach().numpy(), C, atol=1e-6)
+    np.testing.assert_allclose(m.precisions().detach().numpy(), Q, rtol=1e-4, atol=1e-3 * np.abs(Q).max())
+
+
 def _check_skeleton_shape(run, sequence, metrics):
     """The learned skeleton has the quadruped's shape: a joint along each of the four legs and the head.
 
