@@ -390,12 +390,14 @@ class Fitter:
     def refit_bones_to_parts(self) -> None:
         """``coarse.refit_bones``: each bone onto its coarse part's faces (``skeleton_edit.fit_bones_to_parts``).
 
-        Only the lift's bones have parts: with ``skeleton.method=virtual`` (k-means bones) nothing moves.
+        Only the lift's bones have parts: with ``skeleton.method=virtual`` (k-means bones), or with
+        ``coarse.refit_bones`` off, nothing moves.
         """
         from s3o_warp.skeleton_edit import fit_bones_to_parts, precision_to_quat_scales
 
         m = self.model
-        if self.cfg.skeleton.method != "s3o" or m.bone_centers.shape[0] != len(self.coarse.parents):
+        if not self.cfg.coarse.refit_bones or self.cfg.skeleton.method != "s3o" \
+                or m.bone_centers.shape[0] != len(self.coarse.parents):
             return
         C0 = m.bone_centers.detach().cpu().double().numpy()
         C, Q, moved = fit_bones_to_parts(m.verts.detach().cpu(), m.faces.cpu(), self.coarse.face_parts.cpu(), C0,
@@ -625,7 +627,7 @@ class Fitter:
                        "what": "initial", "iou_all_frames": self.hard_iou()})
         for phase in PHASES[PHASES.index(self.phase):]:
             if phase != self.phase:
-                if self.phase == "coarse" and self.cfg.coarse.refit_bones:
+                if self.phase == "coarse":
                     self.refit_bones_to_parts()
                 if phase == "joint" and self.cfg.motion.resolve_crossings:
                     self.resolve_crossings()

@@ -251,6 +251,8 @@ def fit_bones_to_parts(verts, faces, face_parts, centers, precisions, min_faces:
     Returns:
         ``(centers (B, 3), precisions (B, 3, 3), moved (B,) bool)``, float64.
     """
+    from s3o_warp.geometry import axis_angle_to_matrix
+
     X = _np(verts)
     Fc = np.asarray(faces, dtype=np.int64)
     fp = np.asarray(face_parts, dtype=np.int64).reshape(-1)
@@ -275,13 +277,12 @@ def fit_bones_to_parts(verts, faces, face_parts, centers, precisions, min_faces:
         c = (w[:, None] * mid[sel]).sum(0) / w.sum()
         d = mid[sel] - c
         axis = np.linalg.eigh((w[:, None, None] * d[:, :, None] * d[:, None, :]).sum(0) / w.sum())[1][:, -1]
-        lam, U = np.linalg.eigh(0.5 * (Q[b] + Q[b].T))
-        old = U[:, 0]  # the long axis: the smallest precision
+        old = np.linalg.eigh(0.5 * (Q[b] + Q[b].T))[1][:, 0]  # the long axis: the smallest precision
         if axis @ old < 0:
             axis = -axis
-        v, cth = np.cross(old, axis), float(old @ axis)
-        K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-        R = np.eye(3) + K + K @ K / (1 + cth)  # Rodrigues: old -> axis (cth > 0 after the flip)
+        v = np.cross(old, axis)  # the turn old -> axis, about v by its angle (< 90 degrees after the flip)
+        R = axis_angle_to_matrix(torch.as_tensor(v / max(np.linalg.norm(v), 1e-300)
+                                                 * np.arctan2(np.linalg.norm(v), old @ axis))).numpy()
         C[b], Q[b] = c, R @ Q[b] @ R.T
         moved[b] = True
     return C, 0.5 * (Q + np.transpose(Q, (0, 2, 1))), moved
