@@ -869,6 +869,7 @@ class Fitter:
         """
         from s3o_warp.large_steps import LargeSteps, preconditioned_step
 
+        step = self._bone_sized(step)
         lam = self.cfg.coarse.large_steps if self.phase == "coarse" else self.cfg.motion.large_steps
         v = self.model.verts
         if lam <= 0 or v.grad is None or not any(v is p for g in self.opt.param_groups for p in g["params"]):
@@ -878,6 +879,25 @@ class Fitter:
         if pre is None or pre.num_verts != v.shape[0] or pre.lam != float(lam):
             pre = self._large_steps = LargeSteps(self.edges, v.shape[0], lam, v.device)
         preconditioned_step(v, pre, step)
+
+    def _bone_sized(self, step):
+        """``step`` with each bone centre's move scaled by min(1, r_b / ``motion.bone_step_radius``) (r_b: the
+        bone's smallest radius before the step); ``step`` itself when that is off or the centres are not stepped."""
+        r_ref = self.cfg.motion.bone_step_radius
+        c = self.model.bone_centers
+        if r_ref <= 0 or c.grad is None or not any(c is p for g in self.opt.param_groups for p in g["params"]):
+            return step
+
+        def sized():
+            with torch.no_grad():
+                r = torch.exp(-0.5 * self.model.bone_log_scales.max(dim=1).values)  # 1 / sqrt(largest precision)
+                scale = (r / r_ref).clamp(max=1.0)[:, None].to(c.dtype)
+                old = c.detach().clone()
+            step()
+            with torch.no_grad():
+                c.copy_(old + (c - old) * scale)
+
+        return sized
 
     # -- skeleton learning ---------------------------------------------------------------------------
     def steps_per_epoch(self, n: int) -> int:
