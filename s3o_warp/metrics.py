@@ -69,6 +69,7 @@ class Predictions:
         frame_names: T image file stems, in the order of ``verts_cam``.
         joints_cam: float32 (T, J, 3) predicted joint positions in camera space, or None.
         source: the file they were read from.
+        weights: float32 (N, B) skinning weights of the vertices, or None.
     """
 
     verts_cam: np.ndarray
@@ -78,6 +79,7 @@ class Predictions:
     frame_names: list[str]
     joints_cam: np.ndarray | None
     source: Path
+    weights: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -219,7 +221,8 @@ def load_predictions(run) -> Predictions:
     """Read a run's ``motion.npz`` (the run directory or the file itself).
 
     Keys read: ``verts_cam`` (T, N, 3), ``faces`` (F, 3), ``K`` (T, 3, 3) or (3, 3), ``image_size``
-    (H, W), ``frame_names`` (T,) str; optional ``joints_cam`` (T, J, 3). Other keys are ignored.
+    (H, W), ``frame_names`` (T,) str; optional ``joints_cam`` (T, J, 3) and ``weights`` (N, B). Other keys
+    are ignored.
 
     Raises:
         InputError: missing file or key, wrong shapes. A ``.usd``/``.usda``/``.usdc`` path is read with
@@ -253,9 +256,14 @@ def load_predictions(run) -> Predictions:
         joints = np.asarray(d["joints_cam"], dtype=np.float32)
         if joints.ndim != 3 or joints.shape[0] != T or joints.shape[-1] != 3:
             raise InputError(f"{path}: 'joints_cam' must have shape ({T}, J, 3), got {joints.shape}")
+    weights = None
+    if "weights" in d:
+        weights = np.asarray(d["weights"], dtype=np.float32)
+        if weights.ndim != 2 or weights.shape[0] != verts.shape[1]:
+            raise InputError(f"{path}: 'weights' must have shape ({verts.shape[1]}, B), got {weights.shape}")
     if not np.isfinite(verts).all():
         raise InputError(f"{path}: 'verts_cam' holds NaN or inf; the fit diverged, re-run it")
-    return Predictions(verts, faces.astype(np.int32), K, size, names, joints, path)
+    return Predictions(verts, faces.astype(np.int32), K, size, names, joints, path, weights)
 
 
 def _check_faces(faces: np.ndarray, num_verts: int, path) -> None:
@@ -926,6 +934,41 @@ def limb_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, gt_parents: np
     return {"limbs": out, "covered": sum(o["covered"] for o in out), "total": n, "tol": tol, "min_joints": min_joints}
 
 
+def limb_identity(pred_verts: np.ndarray, weights: np.ndarray, gt_joints: np.ndarray, gt_parents: np.ndarray,
+                  sim: Similarity | None = None, names: list[str] | None = None, k: int = 5) -> dict:
+    """Do the fitted limbs keep their identity through the video, or swap places (legs that bounce off
+    each other where the real ones cross)?
+
+    Per ground-truth limb (see :func:`gt_limbs`) and frame, the ``k`` predicted vertices nearest to the
+    limb's tip joint (after the sequence alignment ``sim``) vote with their dominant bone. The limb's bone
+    is the most frequent winner over the frames. A frame is *swapped* when the winner is another limb's
+    bone and not its own. Returns per limb its bone, the fraction of frames it wins (``kept``), the
+    ``swapped`` fraction and ``shared`` (another limb has the same bone: the fit gave both one part), and
+    ``mean_swapped`` over the limbs.
+    """
+    pv = np.asarray(pred_verts, dtype=np.float64)
+    T = pv.shape[0]
+    if sim is not None:
+        pv = np.stack([sim(pv[t]) for t in range(T)])
+    gj = np.asarray(gt_joints, dtype=np.float64)
+    dom = np.asarray(weights).argmax(1)
+    k = max(1, min(int(k), pv.shape[1]))
+    limbs = gt_limbs(gt_parents, names)
+    wins = np.empty((len(limbs), T), dtype=np.int64)
+    for i, limb in enumerate(limbs):
+        tip = gj[:, limb["joints"][-1]]  # (T, 3)
+        near = np.argpartition(np.linalg.norm(pv - tip[:, None], axis=-1), k - 1, axis=1)[:, :k]
+        wins[i] = [np.bincount(dom[n]).argmax() for n in near]
+    own = [int(np.bincount(w).argmax()) for w in wins]
+    out = []
+    for i, limb in enumerate(limbs):
+        others = {b for j, b in enumerate(own) if j != i and b != own[i]}
+        out.append({"limb": limb["name"], "bone": own[i], "kept": float((wins[i] == own[i]).mean()),
+                    "swapped": float(np.isin(wins[i], list(others)).mean()) if others else 0.0,
+                    "shared": own.count(own[i]) > 1})
+    return {"limbs": out, "mean_swapped": float(np.mean([o["swapped"] for o in out])) if out else 0.0, "k": k}
+
+
 # --------------------------------------------------------------------------------------------------
 # Whole-run evaluation
 # --------------------------------------------------------------------------------------------------
@@ -993,8 +1036,9 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
         A JSON-ready dict: ``run``, ``sequence``, ``frames``, then ``mask_iou`` (``mean``,
         ``per_frame`` {stem: IoU}), ``pck_t`` (``pck`` %, ``correct``, ``total``, ``pairs``,
         ``frames``, ``alpha``, ``threshold_frame``, ``per_keypoint``), ``shape_3d`` (see
-        :func:`shape_metrics`), ``skeleton`` (see :func:`skeleton_distance`), each present only
-        when its inputs are, and ``skipped`` {metric: reason} for the others.
+        :func:`shape_metrics`), ``skeleton`` (see :func:`skeleton_distance`), ``limb_identity`` (see
+        :func:`limb_identity`), each present only when its inputs are, and ``skipped`` {metric: reason}
+        for the others.
 
     Raises:
         InputError: unreadable or inconsistent inputs (one line naming the file and the fix).
@@ -1092,6 +1136,12 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
             if gt.joint_parents is not None and len(gt.joint_parents) == gt.joints.shape[1]:
                 result["skeleton"]["limbs"] = limb_coverage(pred.joints_cam[pi], gt.joints[gi], gt.joint_parents, diag,
                                                             sim, gt.joint_names)
+        if gt.joints is not None and gt.joint_parents is not None and len(gt.joint_parents) == gt.joints.shape[1]:
+            if pred.weights is not None:
+                result["limb_identity"] = limb_identity(pred.verts_cam[pi], pred.weights, gt.joints[gi],
+                                                        gt.joint_parents, sim, gt.joint_names)
+            else:
+                skipped["limb_identity"] = f"{pred.source} has no weights"
     else:
         skipped["shape_3d"] = skipped["skeleton"] = "no ground_truth/ (synthetic sequences only)"
     result["skipped"] = skipped
@@ -1131,6 +1181,11 @@ def format_table(metrics: dict) -> str:
         m = metrics["skeleton"]
         rows.append(("joint dist / bbox diag", f(m["distance"], ".5f"),
                      f"GT {m['gt_joints']} deforming joints, predicted {m['pred_joints']}"))
+    if "limb_identity" in metrics:
+        m = metrics["limb_identity"]
+        worst = max(m["limbs"], key=lambda o: o["swapped"], default=None)
+        rows.append(("limb frames swapped", f(m["mean_swapped"], ".3f"),
+                     "mean over GT limbs" + (f"; most: {worst['limb']} {worst['swapped']:.2f}" if worst else "")))
     for k, why in metrics.get("skipped", {}).items():
         rows.append((k, "skipped", why))
     w0 = max(len(r[0]) for r in rows)

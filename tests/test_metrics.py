@@ -159,8 +159,9 @@ def scene(tmp_path_factory):
     for name, v, j in (("self", verts, joints), ("frozen", np.repeat(verts[:1], T, 0), np.repeat(joints[:1], T, 0))):
         run = root / name
         run.mkdir()
+        extra = {"weights": np.repeat(np.eye(2), 8, 0)} if name == "self" else {}  # body box: bone 0, leg box: 1
         np.savez(run / "motion.npz", verts_cam=v, faces=faces, K=np.broadcast_to(K, (T, 3, 3)), image_size=np.array([H, W]),
-                 frame_names=np.array(names), joints_cam=j)
+                 frame_names=np.array(names), joints_cam=j, **extra)
         runs[name] = run
     return dict(seq=seq, runs=runs, verts=verts, faces=faces, joints=joints, K=K, fi=fi, bary=bary, kp=kp, names=names)
 
@@ -321,6 +322,7 @@ def test_ground_truth_scored_against_itself_is_perfect(scene):
     assert m["shape_3d"]["chamfer"] < 1e-6 and m["shape_3d"]["fscore"] == 1.0
     assert m["skeleton"]["distance"] < 1e-5
     assert (m["skeleton"]["gt_joints"], m["skeleton"]["pred_joints"]) == (3, 3)
+    assert [(o["limb"], o["bone"], o["kept"]) for o in m["limb_identity"]["limbs"]] == [("foot", 1, 1.0)]
     assert m["skipped"] == {}
     json.dumps(m)  # JSON-ready
 
@@ -332,6 +334,7 @@ def test_frozen_prediction_scores_clearly_lower(scene):
     assert m["pck_t"]["pck"] < 50.0
     assert m["shape_3d"]["chamfer"] > 0.02 and m["shape_3d"]["fscore"] < 0.8
     assert m["skeleton"]["distance"] > 0.02
+    assert "weights" in m["skipped"]["limb_identity"]  # this run's motion.npz has none
 
 
 def test_scores_a_synth_sequence(tmp_path):
@@ -350,7 +353,8 @@ def test_scores_a_synth_sequence(tmp_path):
                  frame_names=names, joints_cam=gt.joints[sel])
         scores[name] = M.evaluate_run(run, seq, progress=False, n_points=1000)
     good, bad = scores["self"], scores["frozen"]
-    assert good["mask_iou"]["mean"] == 1.0 and good["pck_t"]["pck"] == 100.0 and good["skipped"] == {}
+    assert good["mask_iou"]["mean"] == 1.0 and good["pck_t"]["pck"] == 100.0
+    assert list(good["skipped"]) == ["limb_identity"]  # these motion.npz files carry no skinning weights
     assert good["shape_3d"]["chamfer"] < 1e-6 and good["shape_3d"]["fscore"] == 1.0 and good["skeleton"]["distance"] < 1e-5
     assert bad["mask_iou"]["mean"] < 0.9 and bad["shape_3d"]["fscore"] < 0.9 and bad["skeleton"]["distance"] > 0.01
     assert bad["pck_t"]["pck"] < good["pck_t"]["pck"]
@@ -575,6 +579,41 @@ def test_limb_coverage_on_a_hand_made_tree():
     n3 = {l["limb"]: l["tol_needed"] for l in limb_coverage(pred3, gt, parents, diag)["limbs"]}
     assert abs(n3["joint_3"] - 0.1) < 1e-12
     assert limb_coverage(pred[:, :1], gt, parents, diag)["limbs"][0]["tol_needed"] is None  # one joint, two needed
+
+
+def test_limb_identity_counts_the_frames_where_two_legs_swap():
+    from s3o_warp.metrics import Similarity, limb_identity
+
+    # the tree of the test above: legs end at joints 3 and 5, the tail at joint 6
+    parents = np.array([-1, 0, 1, 2, 1, 4, 0])
+    pos = np.array([[0, 0, 5], [1, 0, 5], [1, 1, 5], [1, 2, 5], [2, 1, 5], [2, 2, 5], [-1, 0, 5]], float)
+    T, n = 10, 5
+    gt = np.repeat(pos[None], T, 0)
+    rng = np.random.default_rng(0)
+    jitter = 0.05 * rng.standard_normal((3, n, 3))
+    # bones 0 and 1: the two legs' parts, bone 2: the tail's; in frames 7-9 the legs' parts trade places
+    verts = np.empty((T, 3 * n, 3))
+    for t in range(T):
+        a, b = (3, 5) if t < 7 else (5, 3)
+        verts[t] = np.concatenate([pos[a] + jitter[0], pos[b] + jitter[1], pos[6] + jitter[2]])
+    W = np.zeros((3 * n, 3))
+    W[np.arange(3 * n), np.repeat(np.arange(3), n)] = 0.8
+    W += 0.1
+    # the predictions live in another frame: the alignment maps them back
+    sim = Similarity(2.0, np.eye(3), np.array([0.5, -1.0, 3.0]))
+    r = limb_identity((verts - sim.translation) / sim.scale, W, gt, parents, sim)
+    got = {o["limb"]: (o["bone"], o["kept"], o["swapped"], o["shared"]) for o in r["limbs"]}
+    assert got == {"joint_3": (0, 0.7, pytest.approx(0.3), False), "joint_5": (1, 0.7, pytest.approx(0.3), False),
+                   "joint_6": (2, 1.0, 0.0, False)}
+    assert r["mean_swapped"] == pytest.approx(0.2)
+    # without the alignment the nearest vertices are the wrong ones
+    assert limb_identity((verts - sim.translation) / sim.scale, W, gt, parents)["mean_swapped"] != pytest.approx(0.2)
+    # one part for both legs: shared, and a frame won by the shared bone is not a swap
+    W2 = W.copy()
+    W2[n:2 * n] = W[:n]
+    r2 = limb_identity(verts, W2, gt, parents)
+    got2 = {o["limb"]: (o["bone"], o["swapped"], o["shared"]) for o in r2["limbs"]}
+    assert got2 == {"joint_3": (0, 0.0, True), "joint_5": (0, 0.0, True), "joint_6": (2, 0.0, False)}
 
 
 def test_a_usd_export_scores_like_its_run(tmp_path):
