@@ -711,7 +711,7 @@ def test_joint_attachment_loss_against_a_dense_twin():
     assert float(got.detach()) == pytest.approx(float(twin(aa, tr).detach()), rel=1e-12)
     assert torch.autograd.gradcheck(lambda a, b: L.joint_attachment_loss(rt(a, b), joints, pos, 2.0), (aa, tr))
     same = rt(aa[:, :1].expand(t, B, 3), tr[:, :1].expand(t, B, 3))  # every bone moved like bone 0
-    assert float(L.joint_attachment_loss(same, joints, pos, 2.0)) == pytest.approx(0.0, abs=1e-20)
+    assert float(L.joint_attachment_loss(same, joints, pos, 2.0).detach()) == pytest.approx(0.0, abs=1e-20)
     one = torch.zeros(1, 2, 3, 4, dtype=torch.float64)
     one[..., :3] = torch.eye(3, dtype=torch.float64)
     one[0, 1, :, 3] = torch.tensor([0.0, 0.3, 0.4], dtype=torch.float64)  # bone 1 slid by 0.5 off its joint
