@@ -946,10 +946,8 @@ def limb_identity(pred_verts: np.ndarray, weights: np.ndarray, gt_joints: np.nda
     ``swapped`` fraction and ``shared`` (another limb has the same bone: the fit gave both one part), and
     ``mean_swapped`` over the limbs.
     """
-    pv = np.asarray(pred_verts, dtype=np.float64)
+    pv = sim(pred_verts) if sim is not None else np.asarray(pred_verts, dtype=np.float64)  # (T, N, 3)
     T = pv.shape[0]
-    if sim is not None:
-        pv = np.stack([sim(pv[t]) for t in range(T)])
     gj = np.asarray(gt_joints, dtype=np.float64)
     dom = np.asarray(weights).argmax(1)
     k = max(1, min(int(k), pv.shape[1]))
