@@ -94,7 +94,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out-dir", default=str(REPO / "runs" / "bench"))
     ap.add_argument("--t-o", nargs="+", type=float, default=None,
                     help="skeleton granularity study: fit once per merge threshold t_o (e.g. 0.99 0.95 0.90) and put the "
-                         "three dominant-bone pictures side by side in renders/skeleton_t_o.png of the last run")
+                         "three dominant-bone pictures side by side in renders/skeleton_t_o-CASE-DEVICE.png of the "
+                         "repository (and renders/skeleton_t_o.png of the last run)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")  # the fit's log (M-step edits) to stderr
 
@@ -151,8 +152,9 @@ def main(argv=None) -> int:
                 tmp = dest.with_suffix(".json.tmp")
                 tmp.write_text(json.dumps(doc, indent=2, default=float))
                 os.replace(tmp, dest)
-        if pictures:
+        if pictures:  # the run's own copy, and the repository's figure for this sequence
             _compose(pictures, run / "renders" / "skeleton_t_o.png")
+            _compose(pictures, REPO / "renders" / f"skeleton_t_o-{case}-{device.type}.png")
     print(f"wrote {dest}")
     return 0
 
@@ -170,6 +172,7 @@ def _compose(pictures, dest: Path) -> None:
         cv2.putText(im, f"t_o = {t_o:.2f}", (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
         imgs.append(im)
     if imgs:
+        dest.parent.mkdir(parents=True, exist_ok=True)
         tmp = dest.with_name(dest.stem + ".tmp.png")
         cv2.imwrite(str(tmp), np.concatenate(imgs, 1))
         os.replace(tmp, dest)
