@@ -84,6 +84,9 @@ class CoarseConfig:
     behind, outside the Gaussian, so the body's bone takes the part; false = the lift's bones as they are."""
     refit_min_faces: int = 4
     """refit_bones leaves a bone whose part has fewer faces than this as the lift made it."""
+    canonical_frame: int | None = None
+    """Index of the canonical frame (the one whose 2D skeleton is lifted); None = chosen automatically (the most
+    horizontal skeleton with the most leg pairs). Set it when the chosen frame shows two legs overlapping."""
 
 
 @dataclass

@@ -190,7 +190,14 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
 
     masks = data.masks.cpu().numpy() > 0.5
     settings = cfg.coarse.init
-    c, _ratios = coarse.canonical_frame(list(masks), settings, progress=False)
+    if cfg.coarse.canonical_frame is None:
+        c, _ratios = coarse.canonical_frame(list(masks), settings, progress=False)
+    else:
+        c = int(cfg.coarse.canonical_frame)
+        if not 0 <= c < len(masks):
+            raise ConfigError(f"coarse.canonical_frame={c}: the sequence has frames 0-{len(masks) - 1}; pick one of "
+                              "them or leave it unset for the automatic choice")
+        log.info("canonical frame %d (coarse.canonical_frame)", c)
     skel = coarse.skeleton_2d(masks[c], settings)
     S = data.crop_size
     H, W = data.frame_size

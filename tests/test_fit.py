@@ -756,3 +756,18 @@ def test_joint_term_follows_its_weight_and_uses_the_skeletons_joints(tiny_sequen
     assert float(v2) != pytest.approx(v1, rel=1e-3)
     P2 = torch.as_tensor(f.skel.joint_positions, dtype=torch.float32)
     assert float(v2) == pytest.approx(float(L.joint_attachment_loss(m.bone_rt(frames), J, P2, size)), rel=1e-5)
+
+
+def test_canonical_frame_setting_picks_the_lifted_frame(tiny_sequence, tmp_path):
+    """coarse.canonical_frame overrides the automatic choice (the lift and the anchor of the fit follow it);
+    a frame outside the sequence is one ConfigError naming the setting."""
+    from s3o_warp.fit import coarse_model, prepare_data
+
+    cfg = smoke_config()
+    data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
+    auto = coarse_model(data, cfg).canonical
+    forced = (auto + 3) % data.num_frames
+    res = coarse_model(data, smoke_config(**{"coarse.canonical_frame": forced}))
+    assert res.canonical == forced != auto
+    with pytest.raises(ConfigError, match="coarse.canonical_frame=8"):
+        coarse_model(data, smoke_config(**{"coarse.canonical_frame": data.num_frames}))
