@@ -60,6 +60,10 @@ class CoarseSettings(SettingsReplace):
     """canonical_frame(): frames whose extent ratio is at least this x the best one's compete on how many leg
     pairs they show (the most wins, then the ratio): a side view where paired legs are apart, so the lift
     pairs them; 1 = the most horizontal frame only (the paper's rule)."""
+    canonical_by_stride: bool = True
+    """Among the competing frames with the most leg pairs, prefer the one whose closest pair's feet are farthest
+    apart (:func:`leg_stride`), then the most horizontal; False = the most horizontal. A frame just after a
+    leg crossing gives the lift legs it cannot tell apart, and the fit swaps them at every crossing."""
     leg_band: float = 0.15
     """A symmetric limb pair counts as legs when one of its ends lies in the lowest leg_band of the 2D skeleton's
     vertical extent (a foot on the ground, not a tail or ears)."""
@@ -540,22 +544,42 @@ def symmetric_pairs(skel: Skeleton2D, s: CoarseSettings) -> list[tuple[int, int]
     return pairs
 
 
+def _leg_pair_ends(skel: Skeleton2D, s: CoarseSettings, pairs: list[tuple[int, int]] | None = None) -> list:
+    """The two end nodes (pixel positions) of every symmetric limb pair that looks like legs (see leg_pairs)."""
+    pairs = symmetric_pairs(skel, s) if pairs is None else pairs
+    if not pairs or not skel.paths:
+        return []
+    y = skel.pixels()[:, 1]
+    floor = y.max() - s.leg_band * (np.ptp(y) + 1.0)
+    out = []
+    for e1, e2 in pairs:
+        ends = [u if skel.node_type[u] == ENDPOINT else v for u, v in (skel.edges[e1], skel.edges[e2])]
+        if any(skel.nodes[u][1] >= floor for u in ends):
+            out.append((np.asarray(skel.nodes[ends[0]], np.float64), np.asarray(skel.nodes[ends[1]], np.float64)))
+    return out
+
+
 def leg_pairs(skel: Skeleton2D, s: CoarseSettings, pairs: list[tuple[int, int]] | None = None) -> int:
     """How many symmetric limb pairs look like legs: a leaf end in the lowest ``leg_band`` of the skeleton.
 
     Image rows grow downwards, so "lowest" is the largest y. A walking animal seen from the side has at
     least one foot of a leg pair on the ground (the other may be lifted); ears and tails end higher up.
     """
-    pairs = symmetric_pairs(skel, s) if pairs is None else pairs
-    if not pairs or not skel.paths:
-        return 0
-    y = skel.pixels()[:, 1]
-    floor = y.max() - s.leg_band * (np.ptp(y) + 1.0)
-    n = 0
-    for e1, e2 in pairs:
-        ends = [u if skel.node_type[u] == ENDPOINT else v for u, v in (skel.edges[e1], skel.edges[e2])]
-        n += any(skel.nodes[u][1] >= floor for u in ends)
-    return n
+    return len(_leg_pair_ends(skel, s, pairs))
+
+
+def leg_stride(skel: Skeleton2D, s: CoarseSettings, pairs: list[tuple[int, int]] | None = None) -> float:
+    """How far apart the feet of the closest leg pair are: min over leg pairs of |end_1 - end_2| / extent.
+
+    ``extent`` is the longer side of the skeleton's pixel bounding box (inclusive). 0 without leg pairs.
+    A pair whose feet nearly touch is a leg crossing: seen once, the lift cannot tell which leg is which.
+    """
+    ends = _leg_pair_ends(skel, s, pairs)
+    if not ends:
+        return 0.0
+    p = skel.pixels()
+    extent = float(max(np.ptp(p[:, 0]), np.ptp(p[:, 1])) + 1.0)
+    return min(float(np.linalg.norm(a - b)) for a, b in ends) / extent
 
 
 # --------------------------------------------------------------------------------------------------
@@ -571,7 +595,8 @@ def canonical_frame(masks: Sequence | np.ndarray, settings: CoarseSettings | Non
     ``(x_max - x_min + 1) / (y_max - y_min + 1)``, computed on the mask shrunk (area interpolation,
     > 0.5) so its longer side is at most ``canonical_size`` pixels. An empty mask gets ratio 0.
     S3O takes the frame with the highest ratio. Here every frame with a ratio of at least
-    ``canonical_tolerance`` x the highest competes on :func:`leg_pairs` (the most wins, then the ratio):
+    ``canonical_tolerance`` x the highest competes on :func:`leg_pairs` (the most wins, then
+    :func:`leg_stride` with ``canonical_by_stride``, then the ratio):
     a walking animal's most horizontal frame often shows a pair of legs overlapping, and the lift can
     only place legs it sees apart on either side of the body (``canonical_tolerance=1`` is S3O's rule).
 
@@ -603,9 +628,11 @@ def canonical_frame(masks: Sequence | np.ndarray, settings: CoarseSettings | Non
     top = int(np.argmax(ratios))
     cands = np.flatnonzero(ratios >= s.canonical_tolerance * ratios[top])
     legs = {int(t): leg_pairs(skels[t], s) for t in cands}
-    best = max(legs, key=lambda t: (legs[t], ratios[t], -t))  # the first frame on ties
-    log.info("canonical frame %d (horizontal/vertical skeleton extent %.3f, %d leg pairs; the most horizontal: "
-             "frame %d, %.3f, %d leg pairs)", best, ratios[best], legs[best], top, ratios[top], legs[top])
+    stride = {t: leg_stride(skels[t], s) if s.canonical_by_stride else 0.0 for t in legs}
+    best = max(legs, key=lambda t: (legs[t], stride[t], ratios[t], -t))  # the first frame on ties
+    log.info("canonical frame %d (horizontal/vertical skeleton extent %.3f, %d leg pairs, feet apart %.3f; the most "
+             "horizontal: frame %d, %.3f, %d leg pairs)", best, ratios[best], legs[best], stride[best], top,
+             ratios[top], legs[top])
     return best, ratios
 
 
