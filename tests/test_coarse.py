@@ -24,6 +24,7 @@ from s3o_warp.coarse import (
     ellipsoid_union_mesh,
     init_bones,
     leg_pairs,
+    leg_stride,
     lift_to_3d,
     part_masks,
     skeleton_2d,
@@ -37,11 +38,11 @@ TAIL = (38, 82)
 K = np.array([[310.0, 0.0, 150.0], [0.0, 290.0, 128.0], [0.0, 0.0, 1.0]])
 
 
-def quadruped(h: int = 240, w: int = 320, front_overlap: bool = False) -> np.ndarray:
+def quadruped(h: int = 240, w: int = 320, front_overlap: bool = False, feet=FEET) -> np.ndarray:
     """front_overlap: both front legs drawn to one foot (a side view where they hide each other)."""
     m = np.zeros((h, w), np.uint8)
     cv2.ellipse(m, (160, 115), (75, 32), 0, 0, 360, 1, -1)
-    for hip_x, (fa, fb) in ((108, FEET[:2]), (212, FEET[2:])):
+    for hip_x, (fa, fb) in ((108, feet[:2]), (212, feet[2:])):
         if front_overlap and hip_x == 212:
             fa = fb = ((fa[0] + fb[0]) // 2, fa[1])
         cv2.line(m, (hip_x, 125), fa, 1, 14)
@@ -228,6 +229,34 @@ def test_leg_pairs_are_symmetric_pairs_ending_low(quad):
     assert len(symmetric_pairs(up, CoarseSettings())) == 2 and leg_pairs(up, CoarseSettings()) == 0
     # overlapping front legs leave one pair
     assert leg_pairs(skeleton_2d(quadruped(front_overlap=True)), CoarseSettings()) == 1
+
+
+def test_leg_stride_and_the_canonical_frame_prefer_feet_apart():
+    """leg_stride = the closest leg pair's feet distance / the skeleton's longer extent; among competing frames
+    with as many leg pairs, the widest stride wins over a slightly more horizontal frame (just after a crossing)."""
+    s = CoarseSettings()
+    wide = skeleton_2d(quadruped())
+    p = wide.pixels()
+    extent = max(np.ptp(p[:, 0]), np.ptp(p[:, 1])) + 1
+    # both pairs' feet are 46 px apart; the skeleton's leaf ends sit at the feet (lines end at the foot centres)
+    assert leg_pairs(wide, s) == 2
+    np.testing.assert_allclose(leg_stride(wide, s), 46.0 / extent, rtol=0.05)
+    close = [(97, 215), (121, 215), (201, 215), (225, 215)]  # each pair's feet 24 px apart
+    narrow = skeleton_2d(quadruped(feet=close))
+    assert leg_pairs(narrow, s) == 2
+    np.testing.assert_allclose(leg_stride(narrow, s), 24.0 / extent, rtol=0.1)
+    assert leg_stride(skeleton_2d(ellipse()), s) == 0.0  # no leg pairs
+
+    def framed(m):
+        big = np.zeros((320, 320), bool)
+        big[40:280] = m
+        return big
+
+    frames = [framed(quadruped(feet=close)), _warp(framed(quadruped()), 0, 0.95)]
+    t, ratios = canonical_frame(frames, progress=False)
+    assert ratios[0] > ratios[1] > 0.9 * ratios[0]
+    assert t == 1
+    assert canonical_frame(frames, CoarseSettings(canonical_by_stride=False), progress=False)[0] == 0
 
 
 def test_canonical_frame_prefers_legs_apart_among_near_side_views():
