@@ -60,10 +60,10 @@ class CoarseSettings(SettingsReplace):
     """canonical_frame(): frames whose extent ratio is at least this x the best one's compete on how many leg
     pairs they show (the most wins, then the ratio): a side view where paired legs are apart, so the lift
     pairs them; 1 = the most horizontal frame only (the paper's rule)."""
-    canonical_by_stride: bool = True
-    """Among the competing frames with the most leg pairs, prefer the one whose closest pair's feet are farthest
-    apart (:func:`leg_stride`), then the most horizontal; False = the most horizontal. A frame just after a
-    leg crossing gives the lift legs it cannot tell apart, and the fit swaps them at every crossing."""
+    canonical_stride_tolerance: float = 0.8
+    """Among the competing frames with the most leg pairs, those whose :func:`leg_stride` (the closest leg
+    pair's feet apart) is at least this x the widest compete on the ratio; 0 = the ratio alone. A frame just
+    after a leg crossing gives the lift legs it cannot tell apart, and the fit swaps them at every crossing."""
     leg_band: float = 0.15
     """A symmetric limb pair counts as legs when one of its ends lies in the lowest leg_band of the 2D skeleton's
     vertical extent (a foot on the ground, not a tail or ears)."""
@@ -114,6 +114,9 @@ class CoarseSettings(SettingsReplace):
         for name in ("canonical_tolerance", "leg_band"):
             if not 0 < getattr(self, name) <= 1:
                 raise ConfigError(f"coarse.{name} must be in (0, 1], got {getattr(self, name)}")
+        if not 0 <= self.canonical_stride_tolerance <= 1:
+            raise ConfigError(f"coarse.canonical_stride_tolerance must be in [0, 1], got "
+                              f"{self.canonical_stride_tolerance}; 0 turns the stride rule off")
         if self.target_vertices < 100:
             raise ConfigError(f"coarse.target_vertices must be >= 100, got {self.target_vertices}")
         if not 0 < self.vertex_tolerance < 1:
@@ -595,8 +598,8 @@ def canonical_frame(masks: Sequence | np.ndarray, settings: CoarseSettings | Non
     ``(x_max - x_min + 1) / (y_max - y_min + 1)``, computed on the mask shrunk (area interpolation,
     > 0.5) so its longer side is at most ``canonical_size`` pixels. An empty mask gets ratio 0.
     S3O takes the frame with the highest ratio. Here every frame with a ratio of at least
-    ``canonical_tolerance`` x the highest competes on :func:`leg_pairs` (the most wins, then
-    :func:`leg_stride` with ``canonical_by_stride``, then the ratio):
+    ``canonical_tolerance`` x the highest competes on :func:`leg_pairs` (the most win); of those, the frames
+    whose :func:`leg_stride` is at least ``canonical_stride_tolerance`` x the widest compete on the ratio:
     a walking animal's most horizontal frame often shows a pair of legs overlapping, and the lift can
     only place legs it sees apart on either side of the body (``canonical_tolerance=1`` is S3O's rule).
 
@@ -628,8 +631,11 @@ def canonical_frame(masks: Sequence | np.ndarray, settings: CoarseSettings | Non
     top = int(np.argmax(ratios))
     cands = np.flatnonzero(ratios >= s.canonical_tolerance * ratios[top])
     legs = {int(t): leg_pairs(skels[t], s) for t in cands}
-    stride = {t: leg_stride(skels[t], s) if s.canonical_by_stride else 0.0 for t in legs}
-    best = max(legs, key=lambda t: (legs[t], stride[t], ratios[t], -t))  # the first frame on ties
+    most = max(legs.values())
+    stride = {t: leg_stride(skels[t], s) for t in legs if legs[t] == most}
+    wide = max(stride.values())
+    best = max((t for t in stride if stride[t] >= s.canonical_stride_tolerance * wide),
+               key=lambda t: (ratios[t], -t))  # the first frame on ties
     log.info("canonical frame %d (horizontal/vertical skeleton extent %.3f, %d leg pairs, feet apart %.3f; the most "
              "horizontal: frame %d, %.3f, %d leg pairs)", best, ratios[best], legs[best], stride[best], top,
              ratios[top], legs[top])

@@ -256,7 +256,12 @@ def test_leg_stride_and_the_canonical_frame_prefer_feet_apart():
     t, ratios = canonical_frame(frames, progress=False)
     assert ratios[0] > ratios[1] > 0.9 * ratios[0]
     assert t == 1
-    assert canonical_frame(frames, CoarseSettings(canonical_by_stride=False), progress=False)[0] == 0
+    # 0 turns the stride rule off (the ratio decides); strides within the tolerance of the widest tie
+    assert canonical_frame(frames, CoarseSettings(canonical_stride_tolerance=0.0), progress=False)[0] == 0
+    assert canonical_frame(frames, CoarseSettings(canonical_stride_tolerance=0.5), progress=False)[0] == 0
+    assert canonical_frame(frames, CoarseSettings(canonical_stride_tolerance=0.6), progress=False)[0] == 1
+    with pytest.raises(ConfigError, match="canonical_stride_tolerance"):
+        CoarseSettings(canonical_stride_tolerance=1.5)
 
 
 def test_canonical_frame_prefers_legs_apart_among_near_side_views():
