@@ -107,8 +107,7 @@ def main(argv=None) -> int:
     device = resolve_device(args.device)
     work = Path(args.out_dir)
     dest = REPO / "benchmarks" / f"fit-{device.type}.json"
-    doc = json.loads(dest.read_text()) if dest.is_file() else {"results": []}
-    doc.update(
+    header = dict(
         command=" ".join(["python"] + sys.argv),
         device=str(device),
         device_name=torch.cuda.get_device_name(device) if device.type == "cuda" else (platform.processor() or platform.machine()),
@@ -144,19 +143,34 @@ def main(argv=None) -> int:
                     "bones": len(json.loads((run / "skeleton.json").read_text())["bones"]),
                     "git_commit": git_commit(),
                 }
-                doc["results"] = [r for r in doc["results"] if not (r["case"] == case and r["method"] == method and r["seed"] == seed
-                                                                    and r.get("preset") == args.preset and r.get("overrides") == entry["overrides"])]
-                doc["results"].append(entry)
                 print(json.dumps(entry), flush=True)
-                dest.parent.mkdir(exist_ok=True)
-                tmp = dest.with_suffix(".json.tmp")
-                tmp.write_text(json.dumps(doc, indent=2, default=float))
-                os.replace(tmp, dest)
+                record(dest, header, entry)
         if pictures:  # the run's own copy, and the repository's figure for this sequence
             _compose(pictures, run / "renders" / "skeleton_t_o.png")
             _compose(pictures, REPO / "renders" / f"skeleton_t_o-{case}-{device.type}.png")
     print(f"wrote {dest}")
     return 0
+
+
+def _same_run(a: dict, b: dict) -> bool:
+    return all(a.get(k) == b.get(k) for k in ("case", "method", "seed", "preset", "overrides"))
+
+
+def record(dest: Path, header: dict, entry: dict) -> None:
+    """Merge one fit's entry into ``dest`` (replacing an earlier entry of the same case, method, seed, preset
+    and overrides), re-reading the file under a lock so fits run side by side do not drop each other's rows;
+    written to a temporary name, then renamed."""
+    import fcntl
+
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    with open(dest.with_suffix(".json.lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        doc = json.loads(dest.read_text()) if dest.is_file() else {"results": []}
+        doc.update(header)
+        doc["results"] = [r for r in doc["results"] if not _same_run(r, entry)] + [entry]
+        tmp = dest.with_suffix(f".json.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(doc, indent=2, default=float))
+        os.replace(tmp, dest)
 
 
 def _compose(pictures, dest: Path) -> None:

@@ -100,16 +100,16 @@ def _check_skeleton_shape(run, sequence, metrics):
 
     Tolerance: after the run's similarity alignment, in at least half of the frames, each leg (shoulder or
     hip -> foot) has a learned joint within 8 % of the bounding-box diagonal of its ground-truth chain, and
-    the head (nose) within 10 % (measured on this CI fit: median 1-3 joints per leg at 8 %). And the
+    the head (nose) within 10 % (measured on this CI fit: the legs need 2.2-6.5 %, the nose 8.5 %). And the
     skeleton sits inside the body: at least 85 % of the (frame, joint) pairs are inside the posed mesh
-    (measured on this 8-frame fit: 0.95).
+    (measured on this 8-frame fit: 0.854 since 202e585's canonical frame, 0.95 before).
 
-    The tail is not checked here: at this clip's 64 px crops the tail is about 2 pixels thick, the coarse
-    skeleton finds no spur for it (7-9 coarse bones, none behind the hips, also at 128x96), so this fit
-    has no tail bone; the nearest joints are the body's, 10-11 % from the tail's chain. The tail is
-    checked on the full-size quadruped (``scripts/bench_fit.py``: ``tail_tip`` covered at 5 %). On a
-    256x192, 16-frame clip (35 s of fit) the lift has a tail bone, but whether a bone still sits on the
-    tail at the end (2-3 %) or the body's Gaussian has taken it (10-12 %) changed with each variant tried.
+    The tail is not checked here. Since the canonical frame prefers legs apart (202e585; frame 7 of this clip)
+    the lift has a tail bone at this clip's 64 px crops, and after the coarse phase and the warm-up a joint sits
+    within 4-5 % of the tail's chain; the joint phase loses it. The M-steps merge the tail into the rear of the
+    body (it sways sideways, towards the camera on this 30-degree orbit, so the flow sees it move with the
+    body), and with merging off (``skeleton.t_o=1``) the nearest joint still ends 8.6 % away (measured on
+    this fit's settings). ``scripts/bench_fit.py --cases quadruped`` reports the full-size quadruped's tail.
     """
     from s3o_warp import metrics as M
 
