@@ -9,7 +9,8 @@ Cases: ``quadruped`` (the built-in default shot, the README's main command), ``f
 orbit), ``cows`` / ``dog`` (DAVIS with BADJA keypoints). Cases that need ../shared/data skip with a
 message when it is absent. Each fit's metrics, per-phase wall time (from log.jsonl) and total time
 are recorded with the command, device, versions and git commit. Results are merged into the JSON file
-(one entry per case/method/seed), so cases can be run in separate invocations.
+(one entry per case/method/seed/preset/overrides and commit; a rerun at the same commit replaces its
+entry, other commits' entries stay as history), so cases can be run in separate invocations, side by side too.
 """
 
 from __future__ import annotations
@@ -153,12 +154,13 @@ def main(argv=None) -> int:
 
 
 def _same_run(a: dict, b: dict) -> bool:
-    return all(a.get(k) == b.get(k) for k in ("case", "method", "seed", "preset", "overrides"))
+    """A rerun of one fit: the same case, method, seed, preset, overrides and commit (other commits' rows are kept)."""
+    return all(a.get(k) == b.get(k) for k in ("case", "method", "seed", "preset", "overrides", "git_commit"))
 
 
 def record(dest: Path, header: dict, entry: dict) -> None:
-    """Merge one fit's entry into ``dest`` (replacing an earlier entry of the same case, method, seed, preset
-    and overrides), re-reading the file under a lock so fits run side by side do not drop each other's rows;
+    """Merge one fit's entry into ``dest`` (replacing an earlier entry of the same fit, :func:`_same_run`),
+    re-reading the file under a lock so fits run side by side do not drop each other's rows;
     written to a temporary name, then renamed."""
     import fcntl
 

@@ -1,0 +1,48 @@
+"""The fit benchmark's JSON: rows merge across invocations, reruns replace their own row, history stays."""
+
+from __future__ import annotations
+
+import json
+import sys
+from multiprocessing import get_context
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+import bench_fit  # noqa: E402
+
+
+def _entry(**over):
+    e = dict(case="horse", method="s3o", seed=0, preset="default", overrides=[], git_commit="a" * 40, pck_t=80.0)
+    e.update(over)
+    return e
+
+
+def _write_rows(dest, seed, n):
+    for k in range(n):
+        bench_fit.record(Path(dest), {"command": f"seed {seed}"}, _entry(seed=seed, pck_t=float(k)))
+
+
+def test_record_replaces_a_rerun_and_keeps_other_commits(tmp_path):
+    dest = tmp_path / "fit-cpu.json"
+    bench_fit.record(dest, {"command": "first"}, _entry())
+    bench_fit.record(dest, {"command": "second"}, _entry(seed=1))
+    bench_fit.record(dest, {"command": "rerun"}, _entry(pck_t=81.0))  # same fit, same commit: replaced
+    bench_fit.record(dest, {"command": "later"}, _entry(git_commit="b" * 40, pck_t=82.0))  # another commit: kept
+    doc = json.loads(dest.read_text())
+    assert doc["command"] == "later"
+    rows = sorted((r["seed"], r["git_commit"][0], r["pck_t"]) for r in doc["results"])
+    assert rows == [(0, "a", 81.0), (0, "b", 82.0), (1, "a", 80.0)]
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_record_from_processes_side_by_side_keeps_every_row(tmp_path):
+    dest = tmp_path / "fit-cpu.json"
+    ctx = get_context("spawn")
+    procs = [ctx.Process(target=_write_rows, args=(str(dest), seed, 15)) for seed in range(3)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(60)
+        assert p.exitcode == 0
+    rows = json.loads(dest.read_text())["results"]
+    assert sorted((r["seed"], r["pck_t"]) for r in rows) == [(s, 14.0) for s in range(3)]
