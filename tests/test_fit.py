@@ -102,11 +102,11 @@ def _check_skeleton_shape(run, sequence, metrics):
     hip -> foot) has a learned joint within 8 % of the bounding-box diagonal of its ground-truth chain, and
     the head (nose) within 10 % (measured on this CI fit: the legs need 2.2-6.5 %, the nose 8.5 %). And the
     skeleton sits inside the body: at least 85 % of the (frame, joint) pairs are inside the posed mesh
-    (measured on this 8-frame fit: 0.854 since 202e585's canonical frame, 0.95 before).
+    (measured on this 8-frame fit at c05de9e: 0.854; 0.95 when this check was written).
 
-    The tail is not checked here. Since the canonical frame prefers legs apart (202e585; frame 7 of this clip)
-    the lift has a tail bone at this clip's 64 px crops, and after the coarse phase and the warm-up a joint sits
-    within 4-5 % of the tail's chain; the joint phase loses it. The M-steps merge the tail into the rear of the
+    The tail is not checked here. At c05de9e the lift has a tail bone at this clip's 64 px crops (canonical
+    frame 7), and after the coarse phase and the warm-up a joint sits within 4-5 % of the tail's chain; the
+    joint phase loses it. The M-steps merge the tail into the rear of the
     body (it sways sideways, towards the camera on this 30-degree orbit, so the flow sees it move with the
     body), and with merging off (``skeleton.t_o=1``) the nearest joint still ends 8.6 % away (measured on
     this fit's settings). ``scripts/bench_fit.py --cases quadruped`` reports the full-size quadruped's tail.
