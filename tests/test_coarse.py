@@ -260,6 +260,14 @@ def test_leg_stride_and_the_canonical_frame_prefer_feet_apart():
     assert canonical_frame(frames, CoarseSettings(canonical_stride_tolerance=0.0), progress=False)[0] == 0
     assert canonical_frame(frames, CoarseSettings(canonical_stride_tolerance=0.5), progress=False)[0] == 0
     assert canonical_frame(frames, CoarseSettings(canonical_stride_tolerance=0.6), progress=False)[0] == 1
+    # feet clearly apart (34 px, 0.74 of the widest) in the more horizontal frame: the default keeps the ratio's
+    # choice and excludes only near-crossings; 0.8 would prefer the wider stride
+    apart = [(92, 215), (126, 215), (196, 215), (230, 215)]
+    frames = [framed(quadruped(feet=apart)), _warp(framed(quadruped()), 0, 0.95)]
+    strides = [leg_stride(skeleton_2d(f), s) for f in frames]
+    assert 0.65 < strides[0] / strides[1] < 0.8, strides
+    assert canonical_frame(frames, progress=False)[0] == 0
+    assert canonical_frame(frames, CoarseSettings(canonical_stride_tolerance=0.8), progress=False)[0] == 1
     with pytest.raises(ConfigError, match="canonical_stride_tolerance"):
         CoarseSettings(canonical_stride_tolerance=1.5)
 
