@@ -142,7 +142,7 @@ def main(argv=None) -> int:
                     "fscore": (metrics.get("shape_3d") or {}).get("fscore"),
                     "skeleton": {k: v for k, v in (metrics.get("skeleton") or {}).items() if k != "per_frame"},
                     "bones": len(json.loads((run / "skeleton.json").read_text())["bones"]),
-                    "git_commit": git_commit(),
+                    "git_commit": header["git_commit"],  # the code this process loaded, not HEAD when the fit ends
                 }
                 print(json.dumps(entry), flush=True)
                 record(dest, header, entry)
