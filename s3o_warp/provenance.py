@@ -19,6 +19,18 @@ def versions() -> dict:
     return {"python": platform.python_version(), "torch": torch.__version__, "warp": warp.config.version, "numpy": numpy.__version__}
 
 
+def cpu_name() -> str:
+    """The CPU's model name (``/proc/cpuinfo`` on Linux), else what ``platform`` knows. CPU fits are chaotic, so
+    one commit and seed can end elsewhere on another CPU: benchmark rows say which one they ran on."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.lower().startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def git_commit() -> str | None:
     """The checkout's HEAD commit, or None outside a git checkout."""
     try:

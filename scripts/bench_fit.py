@@ -19,12 +19,11 @@ import argparse
 import json
 import logging
 import os
-import platform
 import sys
 import time
 from pathlib import Path
 
-from s3o_warp.provenance import REPO, git_commit, versions
+from s3o_warp.provenance import REPO, cpu_name, git_commit, versions
 DATA = Path(os.environ.get("S3O_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 SYNTH = {
@@ -111,7 +110,7 @@ def main(argv=None) -> int:
     header = dict(
         command=" ".join(["python"] + sys.argv),
         device=str(device),
-        device_name=torch.cuda.get_device_name(device) if device.type == "cuda" else (platform.processor() or platform.machine()),
+        device_name=torch.cuda.get_device_name(device) if device.type == "cuda" else cpu_name(),
         cpu_count=os.cpu_count(),
         versions=versions(),
         git_commit=git_commit(),
@@ -143,6 +142,7 @@ def main(argv=None) -> int:
                     "skeleton": {k: v for k, v in (metrics.get("skeleton") or {}).items() if k != "per_frame"},
                     "bones": len(json.loads((run / "skeleton.json").read_text())["bones"]),
                     "git_commit": header["git_commit"],  # the code this process loaded, not HEAD when the fit ends
+                    "device_name": header["device_name"],
                 }
                 print(json.dumps(entry), flush=True)
                 record(dest, header, entry)
