@@ -106,10 +106,10 @@ def _check_skeleton_shape(run, sequence, metrics):
 
     The tail is not checked here. At c05de9e the lift has a tail bone at this clip's 64 px crops (canonical
     frame 7), and after the coarse phase and the warm-up a joint sits within 4-5 % of the tail's chain; the
-    joint phase loses it. The M-steps merge the tail into the rear of the
-    body (it sways sideways, towards the camera on this 30-degree orbit, so the flow sees it move with the
-    body), and with merging off (``skeleton.t_o=1``) the nearest joint still ends 8.6 % away (measured on
-    this fit's settings). ``scripts/bench_fit.py --cases quadruped`` reports the full-size quadruped's tail.
+    joint phase loses it. The M-steps merge the tail into the rear of the body (it sways sideways, towards
+    the camera on this 30-degree orbit, so the flow sees it move with the body), and with merging off
+    (``skeleton.t_o=1``) the nearest joint still ends 8.6 % away (measured on this fit's settings).
+    ``scripts/bench_fit.py --cases quadruped`` reports the full-size quadruped's tail.
     """
     from s3o_warp import metrics as M
 
