@@ -110,6 +110,10 @@ def bone_motion_similarity(model, data, cfg) -> tuple[np.ndarray, np.ndarray]:
     from s3o_warp.kernels.visibility import vertex_visibility
 
     sc = cfg.skeleton
+    if sc.motion_frame not in ("frame", "crop"):
+        from s3o_warp.errors import ConfigError
+
+        raise ConfigError(f"skeleton.motion_frame must be 'frame' or 'crop', got {sc.motion_frame!r}")
     T = data.num_frames
     W = model.skinning()
     FB, valid = [], []
@@ -121,8 +125,12 @@ def bone_motion_similarity(model, data, cfg) -> tuple[np.ndarray, np.ndarray]:
         v = model(fr, weights=W)
         K = model.intrinsics_crop(fr)
         vis = vertex_visibility(v, model.faces)
+        M = None
+        if sc.motion_frame == "frame":  # A_t^-1 A_{t+1}: crop t+1 into crop t, so the boxes' jitter is not motion
+            A = data.crop_to_frame[fr].to(device=v.device, dtype=torch.float64)
+            M = torch.linalg.solve(A[:-1], A[1:])
         fb, ok = sk.bone_flow(v, K, data.flow_fwd[fr[:-1]], vis, W, conf=data.conf_fwd[fr[:-1]],
-                              min_visible=sc.min_visible, min_mass=sc.min_mass)
+                              min_visible=sc.min_visible, min_mass=sc.min_mass, pair_transform=M)
         FB.append(fb)
         valid.append(ok)
     FB = torch.cat(FB, 0)
@@ -217,6 +225,13 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int, sym_plane=No
             changed |= _apply(model, opt, state, edit, "upsample", epoch, sc)
     else:
         S, N = bone_motion_similarity(model, data, cfg)
+        kid = np.flatnonzero(state.parents >= 0)
+        if len(kid):  # what t_o is compared with: the motion similarity of each bone and its parent
+            s_pc = S[kid, state.parents[kid]]
+            fin = s_pc[np.isfinite(s_pc)]
+            log.info("M-step epoch %d: motion similarity of the %d parent-child pairs: %s (%d finite), %d above t_o %.3g",
+                     epoch, len(kid), " ".join(f"{x:.3f}" for x in np.sort(fin)[::-1]), len(fin),
+                     int((fin > sc.t_o).sum()), sc.t_o)
         mirror = _mirror(model, cfg, sym_plane, np.diag(N).copy())
         if mirror is not None:  # a pair's similarity from the better-seen of it and its mirror image
             m = mirror[0]

@@ -31,12 +31,23 @@ def cpu_name() -> str:
     return platform.processor() or platform.machine()
 
 
+CODE_PATHS = ("s3o_warp", "scripts", "kernels", "pyproject.toml")
+"""What a benchmark row's code is: uncommitted changes here make its commit ``<sha>-dirty``."""
+
+
 def git_commit() -> str | None:
-    """The checkout's HEAD commit, or None outside a git checkout."""
+    """The checkout's HEAD commit, with ``-dirty`` when the code (``CODE_PATHS``) differs from it; None outside
+    a git checkout. A row measured on uncommitted code must not carry the commit's name alone."""
     try:
-        return subprocess.check_output(["git", "rev-parse", "HEAD"], cwd=REPO, text=True, stderr=subprocess.DEVNULL).strip()
+        sha = subprocess.check_output(["git", "rev-parse", "HEAD"], cwd=REPO, text=True, stderr=subprocess.DEVNULL).strip()
     except Exception:
         return None
+    try:
+        clean = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", *CODE_PATHS], cwd=REPO,
+                               stderr=subprocess.DEVNULL).returncode == 0
+    except Exception:
+        clean = True
+    return sha if clean else f"{sha}-dirty"
 
 
 def device_name(device: str) -> str:

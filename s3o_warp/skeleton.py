@@ -80,6 +80,7 @@ def bone_flow(
     conf: torch.Tensor | None = None,
     min_visible: float = 0.1,
     min_mass: float = 3.0,
+    pair_transform: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-bone image motion ``F^{B,t}`` from the observed flow, eq. 4, normalised.
 
@@ -101,6 +102,12 @@ def bone_flow(
         min_visible: a bone is valid at t when its visible weight mass is at least this fraction of
             its total mass ``sum_n W[n, b]``...
         min_mass: ...and at least this many vertices' worth of weight.
+        pair_transform: optional ``(T-1, 3, 3)`` maps from crop-(t+1) pixels to crop-t pixels
+            (``A_t^-1 A_{t+1}`` of the crops' ``crop_to_frame``). Given, each sampled flow is re-expressed as
+            the motion in the frame, in crop-t pixels: ``f'(p) = M_t (p + f(p)) - p``. Each frame's crop box
+            follows its own mask, so the crop flow also holds the boxes' shift and zoom from frame to frame (a
+            common shift, and a radial flow that moves the two ends of one rigid part apart); with the
+            transform that jitter is not read as motion.
 
     Returns:
         ``F_B`` ``(T-1, B, 2)`` float32 bone flow in pixels (0 where not valid) and ``valid``
@@ -123,6 +130,8 @@ def bone_flow(
     H, Wd = flow.shape[1:3]
     if conf is not None and tuple(conf.shape) != (T - 1, H, Wd):
         raise ValueError(f"{name}(): conf must have shape ({T - 1}, {H}, {Wd}), got {tuple(conf.shape)}")
+    if pair_transform is not None and tuple(pair_transform.shape) != (T - 1, 3, 3):
+        raise ValueError(f"{name}(): pair_transform must have shape ({T - 1}, 3, 3), got {tuple(pair_transform.shape)}")
     from s3o_warp.geometry import project
 
     with torch.no_grad():
@@ -141,12 +150,16 @@ def bone_flow(
             img = torch.cat([img, conf.to(dev).float()[:, None]], 1)
         s = torch.nn.functional.grid_sample(img, g, mode="bilinear", padding_mode="border", align_corners=True)
         s = s[:, :, 0].permute(0, 2, 1)  # (T-1, N, C)
+        f = s[..., :2]
+        if pair_transform is not None:  # f' = M_t (p + f) - p: the motion in the frame, in crop-t pixels
+            M = pair_transform.to(dev).float()
+            f = torch.einsum("tij,tnj->tni", M[:, :2, :2], uv + f) + M[:, None, :2, 2] - uv
         vis = (visible[:-1].to(dev).bool() & inside).float()
         if conf is not None:
             vis = vis * s[..., 2].clamp(0, 1)
         Wf = weights.to(dev).float()
         mass = vis @ Wf  # (T-1, B)
-        num = torch.einsum("tnc,nb->tbc", vis[..., None] * s[..., :2], Wf)
+        num = torch.einsum("tnc,nb->tbc", vis[..., None] * f, Wf)
         total = Wf.sum(0)
         valid = (mass >= min_visible * total) & (mass >= min_mass) & (mass > 0)
         F = torch.where(valid[..., None], num / mass.clamp_min(1e-12)[..., None], torch.zeros_like(num))

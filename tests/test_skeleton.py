@@ -128,6 +128,50 @@ def test_bone_flow_matches_cv2_remap_twin(device):
     np.testing.assert_allclose(F.numpy(), Fr, atol=2e-3)
 
 
+def test_bone_flow_in_the_frame_takes_out_the_crop_jitter():
+    """Two parts still in the frame, seen through crops that shift and zoom: the crop flow is the boxes' jitter
+    only (its two ends move apart), and with ``pair_transform`` (A_t^-1 A_{t+1}) the bones are still; a part
+    that moves in the frame keeps its frame motion, in crop-t pixels."""
+    S, T, N = 64, 3, 200
+    rng = np.random.default_rng(3)
+    K = np.array([[50.0, 0, 31.5], [0, 50.0, 31.5], [0, 0, 1]])
+    X = np.zeros((N, 3))
+    X[:100, 0] = rng.uniform(-0.5, -0.1, 100)
+    X[100:, 0] = rng.uniform(0.1, 0.5, 100)
+    X[:, 1] = rng.uniform(-0.3, 0.3, N)
+    X[:, 2] = 2.0
+    verts = np.repeat(X[None], T, 0)
+    # crop_to_frame A_t = [[a, 0, ox], [0, a, oy]]: frame point x = a p + o
+    A = np.array([[[a, 0, ox], [0, a, oy], [0, 0, 1]] for a, ox, oy in ((2.0, 10.0, 5.0), (2.1, 7.0, 6.0), (1.9, 12.0, 3.0))])
+    move = np.zeros((T - 1, 2))  # part 0's frame flow per pair; part 1's is the argument of crop_flow
+    M = np.linalg.solve(A[:-1], A[1:])  # crop t+1 -> crop t
+
+    def crop_flow(t, part_shift):
+        """f(p) = A_{t+1}^-1 (A_t p + F) - p for the frame flow F (part 1 right of column 31.5: part_shift)."""
+        Ai = np.linalg.inv(A[t + 1])
+        c, r = np.meshgrid(np.arange(S, dtype=float), np.arange(S, dtype=float))
+        F = np.stack([np.where(c > 31.5, part_shift[0], move[t, 0]), np.where(c > 31.5, part_shift[1], move[t, 1])], -1)
+        x = np.stack([A[t, 0, 0] * c + A[t, 0, 2], A[t, 1, 1] * r + A[t, 1, 2]], -1) + F
+        q = np.stack([Ai[0, 0] * x[..., 0] + Ai[0, 2], Ai[1, 1] * x[..., 1] + Ai[1, 2]], -1)
+        return (q - np.stack([c, r], -1)).astype(np.float32)
+
+    W = torch.tensor(_hard_weights(np.r_[np.zeros(100, int), np.ones(100, int)], 2), dtype=torch.float32)
+    args = (torch.tensor(verts, dtype=torch.float32), torch.tensor(K).float().expand(T, 3, 3))
+    vis = torch.ones(T, N, dtype=torch.bool)
+    still = torch.tensor(np.stack([crop_flow(t, (0.0, 0.0)) for t in range(T - 1)]))
+    F, ok = sk.bone_flow(*args, still, vis, W)
+    assert ok.all() and F.norm(dim=-1).min() > 0.5  # the jitter alone reads as motion in crop pixels...
+    assert (F[:, 0, 0] * F[:, 1, 0] < 0).all()  # ...and the zoom moves the two still parts apart (in x)
+    Ff, ok = sk.bone_flow(*args, still, vis, W, pair_transform=torch.tensor(M))
+    torch.testing.assert_close(Ff, torch.zeros_like(Ff), atol=1e-4, rtol=0)
+    moving = torch.tensor(np.stack([crop_flow(t, (4.0, -2.0)) for t in range(T - 1)]))
+    Ff, ok = sk.bone_flow(*args, moving, vis, W, pair_transform=torch.tensor(M))
+    want = torch.tensor([[[0.0, 0.0], [4.0 / A[t, 0, 0], -2.0 / A[t, 0, 0]]] for t in range(T - 1)], dtype=torch.float32)
+    torch.testing.assert_close(Ff, want, atol=1e-4, rtol=0)
+    with pytest.raises(ValueError, match="pair_transform"):
+        sk.bone_flow(*args, still, vis, W, pair_transform=torch.tensor(M[:1]))
+
+
 def test_bone_flow_barely_visible_is_invalid():
     N, T = 50, 2
     verts = torch.zeros(T, N, 3)
