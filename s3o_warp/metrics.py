@@ -899,7 +899,9 @@ def gt_limbs(parents: np.ndarray, names: list[str] | None = None) -> list[dict]:
 
 
 def _point_polyline_distance(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
-    """Distance of each of ``points (M, 3)`` to the polyline ``poly (K, 3)``."""
+    """Distance of each of ``points (M, 3)`` to the polyline ``poly (K, 3)`` (K = 1: to that point)."""
+    if len(poly) == 1:
+        return np.linalg.norm(points - poly[0], axis=-1)
     a, b = poly[:-1], poly[1:]
     ab = b - a
     t = np.einsum("mkd,kd->mk", points[:, None] - a[None], ab) / np.maximum((ab * ab).sum(-1), 1e-12)
@@ -909,20 +911,24 @@ def _point_polyline_distance(points: np.ndarray, poly: np.ndarray) -> np.ndarray
 
 def limb_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, gt_parents: np.ndarray, diag: np.ndarray,
                   sim: Similarity | None = None, names: list[str] | None = None, tol: float = 0.05,
-                  min_joints: int = 2) -> dict:
+                  min_joints: int = 2, branch: bool = True) -> dict:
     """Does every ground-truth limb have a learned joint chain along it?
 
     A limb (see :func:`gt_limbs`) counts as covered when, in at least half of the frames, ``min_joints``
     or more predicted joints lie within ``tol`` x the bbox diagonal of the limb's polyline (after the
     sequence alignment ``sim``). Returns per-limb median counts, ``tol_needed`` (the limb is covered at
     every ``tol`` above it; None with fewer than ``min_joints`` predicted joints) and the covered fraction.
+    ``branch=False`` leaves the branching ancestor out of the polyline (the limb's own joints: a tail from its
+    base, not from the pelvis), so a joint where the limb meets the body, or a neighbouring limb's, does not
+    count for it.
     """
     pj = sim(pred_joints) if sim is not None else np.asarray(pred_joints, dtype=np.float64)
     gj = np.asarray(gt_joints, dtype=np.float64)
     T = gj.shape[0]
     out = []
     for limb in gt_limbs(gt_parents, names):
-        d = np.stack([_point_polyline_distance(pj[t], gj[t, limb["joints"]]) / diag[t] for t in range(T)])
+        chain = limb["joints"] if branch else limb["joints"][1:]
+        d = np.stack([_point_polyline_distance(pj[t], gj[t, chain]) / diag[t] for t in range(T)])
         counts = (d < tol).sum(1)
         covered = bool((counts >= min_joints).mean() >= 0.5)
         # the min_joints-th nearest joint per frame; covered iff it is < tol in ceil(T / 2) frames or more

@@ -579,6 +579,15 @@ def test_limb_coverage_on_a_hand_made_tree():
     n3 = {l["limb"]: l["tol_needed"] for l in limb_coverage(pred3, gt, parents, diag)["limbs"]}
     assert abs(n3["joint_3"] - 0.1) < 1e-12
     assert limb_coverage(pred[:, :1], gt, parents, diag)["limbs"][0]["tol_needed"] is None  # one joint, two needed
+    # branch=False: the limb's own joints only. A joint at the body end (j1, where the legs branch) covers
+    # both legs with the branch in the polyline, neither without it; the tail's own chain is the point j6
+    hip = np.repeat(np.array([[[1.0, 0.0, 5]]]), 3, 0)
+    with_branch = {l["limb"]: l["covered"] for l in limb_coverage(hip, gt, parents, diag, min_joints=1)["limbs"]}
+    own = limb_coverage(hip, gt, parents, diag, min_joints=1, branch=False)["limbs"]
+    assert with_branch == {"joint_3": True, "joint_5": True, "joint_6": False}  # the tail branches at j0
+    assert {l["limb"]: l["covered"] for l in own} == {"joint_3": False, "joint_5": False, "joint_6": False}
+    need = {l["limb"]: l["tol_needed"] for l in own}
+    assert abs(need["joint_3"] - 1 / 3) < 1e-12 and abs(need["joint_6"] - 2 / 3) < 1e-12  # to j2 (1 away), to j6 (2)
 
 
 def test_limb_identity_counts_the_frames_where_two_legs_swap():
