@@ -282,10 +282,14 @@ class SkeletonConfig:
     min_flow: float = 0.5
     """Motion similarity: frames where both bones move less than this (crop pixels) say nothing about direction."""
     motion_frame: str = "crop"
-    """Bone motion (eq. 4) as seen in the frame, in crop-t pixels (frame), or as the flow between the two crops
-    (crop). Each crop box follows its own frame's mask, so the crop flow adds the boxes' shift and zoom to every
-    bone (on the 120-degree Fox at 192 px: a median 3.5 px shift and 1.9 px of zoom at the crop's edge per
-    frame, as large as a walking leg's motion); frame takes it out. Not in the paper, which has no crops."""
+    """Which motion of the bones eq. 8 compares. crop: the flow between the two crops. frame: the motion in the
+    frame, in crop-t pixels; each crop box follows its own frame's mask, so the crop flow adds the boxes' shift
+    and zoom to every bone (on the 120-degree Fox at 192 px: a median 3.5 px shift and 1.9 px of zoom at the
+    crop's edge per frame, as large as a walking leg's motion). body: the articulated motion, the frame motion
+    less what the root's rigid motion and the camera give each vertex, and two bones that both stay with the
+    body (both under min_flow) count as moving together; a camera orbiting a rigid part moves its two ends in
+    different image directions, which crop and frame read as disagreement. Not in the paper (no crops, eq. 8
+    on the raw flow)."""
     merge_quantile: float = 0.0
     """Motion similarity over frames: this quantile of the per-frame cosines instead of their minimum (0 = the
     paper's "in every frame"; 0.1 = in 90 % of the frames, so flow noise on parts that barely move in the crop

@@ -110,10 +110,12 @@ def bone_motion_similarity(model, data, cfg) -> tuple[np.ndarray, np.ndarray]:
     from s3o_warp.kernels.visibility import vertex_visibility
 
     sc = cfg.skeleton
-    if sc.motion_frame not in ("frame", "crop"):
+    if sc.motion_frame not in ("crop", "frame", "body"):
         from s3o_warp.errors import ConfigError
 
-        raise ConfigError(f"skeleton.motion_frame must be 'frame' or 'crop', got {sc.motion_frame!r}")
+        raise ConfigError(f"skeleton.motion_frame must be 'crop', 'frame' or 'body', got {sc.motion_frame!r}")
+    from s3o_warp.geometry import project
+
     T = data.num_frames
     W = model.skinning()
     FB, valid = [], []
@@ -125,18 +127,24 @@ def bone_motion_similarity(model, data, cfg) -> tuple[np.ndarray, np.ndarray]:
         v = model(fr, weights=W)
         K = model.intrinsics_crop(fr)
         vis = vertex_visibility(v, model.faces)
-        M = None
-        if sc.motion_frame == "frame":  # A_t^-1 A_{t+1}: crop t+1 into crop t, so the boxes' jitter is not motion
+        M = rigid = None
+        if sc.motion_frame in ("frame", "body"):  # A_t^-1 A_{t+1}: crop t+1 into crop t (the boxes' jitter out)
             A = data.crop_to_frame[fr].to(device=v.device, dtype=torch.float64)
             M = torch.linalg.solve(A[:-1], A[1:])
+        if sc.motion_frame == "body":  # frame t's articulated pose carried by frame t+1's root and camera
+            RT = model.root_rt(fr)
+            obj = model.posed_object(fr, weights=W)
+            rigid = project(torch.einsum("tij,tnj->tni", RT[1:, :, :3], obj[:-1]) + RT[1:, None, :, 3], K[1:])
         fb, ok = sk.bone_flow(v, K, data.flow_fwd[fr[:-1]], vis, W, conf=data.conf_fwd[fr[:-1]],
-                              min_visible=sc.min_visible, min_mass=sc.min_mass, pair_transform=M)
+                              min_visible=sc.min_visible, min_mass=sc.min_mass, pair_transform=M,
+                              rigid_next=rigid)
         FB.append(fb)
         valid.append(ok)
     FB = torch.cat(FB, 0)
     valid = torch.cat(valid, 0)
     S, N = sk.motion_similarity(FB, valid, min_flow=sc.min_flow, min_frames=sc.min_frames,
-                                quantile=sc.merge_quantile, return_frames=True)
+                                quantile=sc.merge_quantile, return_frames=True,
+                                static_agree=sc.motion_frame == "body")
     return S.cpu().double().numpy(), N.cpu().numpy()
 
 

@@ -172,6 +172,52 @@ def test_bone_flow_in_the_frame_takes_out_the_crop_jitter():
         sk.bone_flow(*args, still, vis, W, pair_transform=torch.tensor(M[:1]))
 
 
+def test_bone_flow_articulated_part_and_static_agreement():
+    """With ``rigid_next`` the bone motion is what the body's rigid motion does not explain: a body that turns
+    and moves reads as still, a part that also swings keeps its swing; then two still bones agree
+    (``static_agree``) and the swinging one does not."""
+    S, T = 64, 3
+    # one vertex on each pixel centre of a 40 x 16 block (depth 2), flow given exactly at those pixels
+    cols, rows = np.meshgrid(np.arange(12, 52), np.arange(24, 40))
+    uv = np.stack([cols.ravel(), rows.ravel()], -1).astype(float)
+    N = len(uv)
+    f = 50.0
+    X = np.concatenate([(uv - 31.5) / f * 2.0, np.full((N, 1), 2.0)], -1)
+    labels = np.digitize(uv[:, 0], [25, 38])  # three parts, left to right
+    c, s_ = np.cos(np.radians(8)), np.sin(np.radians(8))
+    R = np.array([[c, 0, s_], [0, 1, 0], [-s_, 0, c]])
+
+    def proj(P):
+        return P[:, :2] / P[:, 2:] * f + 31.5
+
+    body = (X - [0, 0, 2.0]) @ R.T + [0.1, 0.0, 2.0]  # the body turned 8 degrees and moved 0.1 right
+    moved = body + np.where(labels[:, None] == 2, [0, 0.05, 0], 0)  # part 2 also swings 0.05 down
+    flow = np.zeros((T - 1, S, S, 2), np.float32)
+    flow[:, rows.ravel(), cols.ravel()] = proj(moved) - uv
+    rigid = torch.tensor(np.stack([proj(body)] * (T - 1)), dtype=torch.float32)
+    W = torch.tensor(_hard_weights(labels, 3), dtype=torch.float32)
+    K = torch.tensor([[f, 0, 31.5], [0, f, 31.5], [0, 0, 1]]).expand(T, 3, 3)
+    args = (torch.tensor(np.repeat(X[None], T, 0), dtype=torch.float32), K, torch.tensor(flow),
+            torch.ones(T, N, dtype=torch.bool), W)
+    F_raw, _ = sk.bone_flow(*args)
+    assert F_raw.norm(dim=-1).min() > 1.0  # the turn and the move: every part moves several pixels
+    F, ok = sk.bone_flow(*args, rigid_next=rigid)
+    assert ok.all()
+    expect = np.stack([(proj(moved) - proj(body))[labels == b].mean(0) for b in range(3)])
+    for t in range(T - 1):
+        np.testing.assert_allclose(F[t].numpy(), expect, atol=1e-3)
+    assert F[0, :2].norm(dim=-1).max() < 1e-3 and F[0, 2, 1] > 1.0  # still, still, swinging down
+    # with pair_transform: scaled into crop-t pixels by its linear part (crop t+1 at half the scale here)
+    M = torch.tensor([[[0.5, 0, 3.0], [0, 0.5, -2.0], [0, 0, 1]]] * (T - 1))
+    Fm, _ = sk.bone_flow(*args, rigid_next=rigid, pair_transform=M)
+    torch.testing.assert_close(Fm, 0.5 * F, atol=1e-5, rtol=0)
+    Sm = sk.motion_similarity(F, ok, min_flow=0.5, static_agree=True)
+    assert Sm[0, 1] == 1.0 and Sm[0, 2] < 0.5 and Sm[1, 2] < 0.5
+    assert sk.motion_similarity(F, ok, min_flow=0.5)[0, 1] == float("-inf")  # skipped frames: never merged
+    with pytest.raises(ValueError, match="rigid_next"):
+        sk.bone_flow(*args, rigid_next=torch.zeros(T - 1, N, 3))
+
+
 def test_bone_flow_barely_visible_is_invalid():
     N, T = 50, 2
     verts = torch.zeros(T, N, 3)
