@@ -909,6 +909,24 @@ def _point_polyline_distance(points: np.ndarray, poly: np.ndarray) -> np.ndarray
     return np.linalg.norm(points[:, None] - q, axis=-1).min(1)
 
 
+def chain_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, chain, diag: np.ndarray,
+                   sim: Similarity | None = None, tol: float = 0.05, min_joints: int = 2) -> dict:
+    """Is there a learned joint chain along one ground-truth joint chain (``chain``: joint indices, a polyline;
+    one index: a point)? The test of :func:`limb_coverage` for any chain, for example a neck between two
+    branchings. Returns ``median_pred_joints`` (within ``tol`` x the bbox diagonal), ``covered`` (``min_joints``
+    or more in at least half of the frames) and ``tol_needed`` (covered at every ``tol`` above it; None with
+    fewer than ``min_joints`` predicted joints)."""
+    pj = sim(pred_joints) if sim is not None else np.asarray(pred_joints, dtype=np.float64)
+    gj = np.asarray(gt_joints, dtype=np.float64)
+    T = gj.shape[0]
+    d = np.stack([_point_polyline_distance(pj[t], gj[t, list(chain)]) / diag[t] for t in range(T)])
+    counts = (d < tol).sum(1)
+    # the min_joints-th nearest joint per frame; covered iff it is < tol in ceil(T / 2) frames or more
+    kth = np.sort(d, axis=1)[:, min_joints - 1] if d.shape[1] >= min_joints else None
+    return {"median_pred_joints": float(np.median(counts)), "covered": bool((counts >= min_joints).mean() >= 0.5),
+            "tol_needed": None if kth is None else float(np.sort(kth)[int(np.ceil(T / 2)) - 1])}
+
+
 def limb_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, gt_parents: np.ndarray, diag: np.ndarray,
                   sim: Similarity | None = None, names: list[str] | None = None, tol: float = 0.05,
                   min_joints: int = 2, branch: bool = True) -> dict:
@@ -922,20 +940,11 @@ def limb_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, gt_parents: np
     base, not from the pelvis), so a joint where the limb meets the body, or a neighbouring limb's, does not
     count for it.
     """
-    pj = sim(pred_joints) if sim is not None else np.asarray(pred_joints, dtype=np.float64)
-    gj = np.asarray(gt_joints, dtype=np.float64)
-    T = gj.shape[0]
     out = []
     for limb in gt_limbs(gt_parents, names):
         chain = limb["joints"] if branch else limb["joints"][1:]
-        d = np.stack([_point_polyline_distance(pj[t], gj[t, chain]) / diag[t] for t in range(T)])
-        counts = (d < tol).sum(1)
-        covered = bool((counts >= min_joints).mean() >= 0.5)
-        # the min_joints-th nearest joint per frame; covered iff it is < tol in ceil(T / 2) frames or more
-        kth = np.sort(d, axis=1)[:, min_joints - 1] if d.shape[1] >= min_joints else None
-        need = None if kth is None else float(np.sort(kth)[int(np.ceil(T / 2)) - 1])
-        out.append({"limb": limb["name"], "gt_joints": len(limb["joints"]), "median_pred_joints": float(np.median(counts)),
-                    "covered": covered, "tol_needed": need})
+        c = chain_coverage(pred_joints, gt_joints, chain, diag, sim, tol, min_joints)
+        out.append({"limb": limb["name"], "gt_joints": len(limb["joints"]), **c})
     n = len(out)
     return {"limbs": out, "covered": sum(o["covered"] for o in out), "total": n, "tol": tol, "min_joints": min_joints}
 
