@@ -142,9 +142,11 @@ def bone_motion_similarity(model, data, cfg) -> tuple[np.ndarray, np.ndarray]:
         valid.append(ok)
     FB = torch.cat(FB, 0)
     valid = torch.cat(valid, 0)
-    S, N = sk.motion_similarity(FB, valid, min_flow=sc.min_flow, min_frames=sc.min_frames,
+    body = sc.motion_frame == "body"
+    S, N = sk.motion_similarity(FB, valid, min_flow=sc.still_flow * data.crop_size if body else sc.min_flow,
+                                min_frames=sc.min_frames,
                                 quantile=sc.merge_quantile, return_frames=True,
-                                static_agree=sc.motion_frame == "body")
+                                static_agree=body)
     return S.cpu().double().numpy(), N.cpu().numpy()
 
 
