@@ -67,3 +67,14 @@ def tiny_sequence(tmp_path_factory):
     out = tmp_path_factory.mktemp("seq") / "quad"
     make_sequence(out, frames=8, size=(96, 72), azim=(-15.0, 15.0), seed=0, progress=False)
     return out
+
+
+@pytest.fixture(scope="session")
+def small_sequence(tmp_path_factory):
+    """A 16-frame 128x96 clip of the built-in quadruped: the smallest on which the fit keeps its tail (at
+    ``tiny_sequence``'s size the tail is 1-2 px thick and the coarse mesh loses it)."""
+    from s3o_warp.synth import make_sequence
+
+    out = tmp_path_factory.mktemp("seq") / "quad16"
+    make_sequence(out, frames=16, size=(128, 96), azim=(-15.0, 15.0), seed=0, progress=False)
+    return out

@@ -64,7 +64,15 @@ def test_small_fit_raises_iou_and_writes_the_run_directory(tiny_sequence, tmp_pa
     assert metrics["mask_iou"]["mean"] > 0.6
     assert metrics["pck_t"]["pck"] is not None
     _check_exported_fit(run, "quad")
-    _check_skeleton_shape(run, tiny_sequence, metrics)
+
+
+def test_fit_of_a_small_clip_learns_the_quadrupeds_skeleton(small_sequence, tmp_path):
+    """Four legs, a tail, a neck and a head (see :func:`_check_skeleton_shape` for the tolerances)."""
+    cfg = _cfg(**{"data.crop_size": 96, "coarse.init.target_vertices": 1200, "coarse.steps": 30,
+                  "motion.warmup_steps": 40, "motion.steps": 60})
+    run = tmp_path / "run"
+    metrics = fit(small_sequence, run, cfg, torch.device("cpu"))
+    _check_skeleton_shape(run, small_sequence, metrics)
 
 
 @pytest.mark.parametrize("method", ["s3o", "virtual"])
@@ -96,20 +104,22 @@ def test_bones_refit_to_their_coarse_parts_only_for_the_lift(tiny_sequence, tmp_
 
 
 def _check_skeleton_shape(run, sequence, metrics):
-    """The learned skeleton has the quadruped's shape: a joint along each of the four legs and the head.
+    """The learned skeleton has the quadruped's shape: a joint along each of the four legs, the tail and the
+    neck, and one at the head, all inside the body.
 
-    Tolerance: after the run's similarity alignment, in at least half of the frames, each leg (shoulder or
-    hip -> foot) has a learned joint within 8 % of the bounding-box diagonal of its ground-truth chain, and
-    the head (nose) within 10 % (measured on this CI fit: the legs need 2.2-6.5 %, the nose 8.5 %). And the
-    skeleton sits inside the body: at least 85 % of the (frame, joint) pairs are inside the posed mesh
-    (measured on this 8-frame fit at c05de9e: 0.854; 0.95 when this check was written).
+    Tolerance: after the run's similarity alignment, in at least half of the frames, a learned joint lies
+    within 8 % of the bounding-box diagonal of each leg's own chain (shoulder or hip -> knee -> foot) and of the
+    tail's own chain (base -> tip), within 8 % of the neck (withers -> neck -> head) and within 10 % of the
+    head; the chains leave out the joint where the limb meets the body (``branch=False``), so a hip joint does
+    not count for the tail (the head: head -> nose). At least 85 % of the (frame, joint) pairs are inside the
+    posed mesh.
 
-    The tail is not checked here. At c05de9e the lift has a tail bone at this clip's 64 px crops (canonical
-    frame 7), and after the coarse phase and the warm-up a joint sits within 4-5 % of the tail's chain; the
-    joint phase loses it. The M-steps merge the tail into the rear of the body (it sways sideways, towards
-    the camera on this 30-degree orbit, so the flow sees it move with the body), and with merging off
-    (``skeleton.t_o=1``) the nearest joint still ends 8.6 % away (measured on this fit's settings).
-    ``scripts/bench_fit.py --cases quadruped`` reports the full-size quadruped's tail.
+    Measured on ``small_sequence`` (clip seed 0) with this test's settings: legs 3.9-5.1 %, tail 2.4 %, neck
+    3.8 %, head 4.1 %, joints inside 0.97, 19 bones. The bounds are not met on every clip of this size: on clip
+    seeds 1-3 (``make_sequence(..., seed=s)``) the legs need 3.6-6.2, 3.8-5.5 and 3.8-8.2 %, the tail 9.1, 3.0
+    and 4.4 %, so clip 1 loses its tail (the tail bone's vertices go to the body during the joint phase) and
+    clip 3's front-left leg misses by 0.2 points. At ``tiny_sequence``'s size (64 px crops, 300 coarse
+    vertices) the coarse mesh has no tail at all: it is 1-2 px thick there.
     """
     from s3o_warp import metrics as M
 
@@ -117,15 +127,17 @@ def _check_skeleton_shape(run, sequence, metrics):
     a = metrics["shape_3d"]["alignment"]
     sim = M.Similarity(a["scale"], np.array(a["rotation"]), np.array(a["translation"]))
     diag = M.bbox_diagonal(gt.verts)
-
-    def covered(tol):
-        cov = M.limb_coverage(pred.joints_cam, gt.joints, gt.joint_parents, diag, sim, list(gt.joint_names),
-                              tol=tol, min_joints=1)
-        return {limb["limb"]: limb["covered"] for limb in cov["limbs"]}
-
-    legs, ends = covered(0.08), covered(0.10)
-    assert all(legs[k] for k in ("foot_fl", "foot_fr", "foot_bl", "foot_br")), legs
-    assert ends["nose"], ends
+    names = list(gt.joint_names)
+    cov = M.limb_coverage(pred.joints_cam, gt.joints, gt.joint_parents, diag, sim, names, min_joints=1,
+                          branch=False)
+    need = {limb["limb"]: limb["tol_needed"] for limb in cov["limbs"]}
+    head = [names.index(n) for n in ("head", "nose")]
+    need["nose"] = M.chain_coverage(pred.joints_cam, gt.joints, head, diag, sim, min_joints=1)["tol_needed"]
+    neck = [names.index(n) for n in ("withers", "neck", "head")]
+    need["neck"] = M.chain_coverage(pred.joints_cam, gt.joints, neck, diag, sim, min_joints=1)["tol_needed"]
+    bounds = {"foot_fl": 0.08, "foot_fr": 0.08, "foot_bl": 0.08, "foot_br": 0.08, "tail_tip": 0.08, "neck": 0.08,
+              "nose": 0.10}
+    assert all(need[k] < b for k, b in bounds.items()), need
     parents = np.array([b["parent"] for b in json.loads((run / "skeleton.json").read_text())["bones"]])
     assert (parents == -1).sum() == 1
     assert metrics["joints_inside"]["fraction"] >= 0.85, metrics["joints_inside"]
