@@ -323,6 +323,9 @@ class Fitter:
             raise ConfigError(f"motion.w_joint must be >= 0 (0 = off), got {cfg.motion.w_joint}")
         if cfg.motion.sweep_stride < 0:
             raise ConfigError(f"motion.sweep_stride must be >= 0 (0 = half the window), got {cfg.motion.sweep_stride}")
+        if cfg.skeleton.motion_frame not in ("crop", "frame", "body") or not 0 < cfg.skeleton.still_flow < 1:
+            raise ConfigError(f"skeleton.motion_frame must be 'crop', 'frame' or 'body' and skeleton.still_flow in (0, 1) "
+                              f"(a fraction of the crop side); got {cfg.skeleton.motion_frame!r}, {cfg.skeleton.still_flow}")
         self.coarse = coarse_res
         self.model = S3OModel(coarse_res.init).to(device)
         self.edges = mesh_edges(self.model.faces).to(device)

@@ -9,6 +9,12 @@ Called by the fit between epochs of the joint phase. For epoch e (0-based, ``e1`
   into their parents (not in the paper), and split bones whose length varies over the frames (eq. 6
   corrected) into two bones joined at a new joint.
 
+The motion compared in eq. 8 is, by ``skeleton.motion_frame``: the flow between the two crops (``crop``, the
+default), the motion in the frame with the crop boxes' own shift and zoom taken out (``frame``), or the
+articulated motion, the flow less what the root's rigid motion and the camera give each vertex (``body``; then
+two bones that both stay with the body, under ``skeleton.still_flow``, move together). Each merge step logs the
+similarity of every bone to its parent, the numbers t_o is compared with.
+
 With ``skeleton.mirror`` (not in the paper) the refinement takes the same decisions for a bone and its mirror
 partner across the lift's symmetry plane (:func:`s3o_warp.skeleton.mirror_partners`), from whichever of the
 two is seen moving in more frames: a pair's motion similarity, a bone's length for the pruning and whether

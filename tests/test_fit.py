@@ -393,6 +393,9 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
     with pytest.raises(ConfigError, match="sweep_stride"):
         Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["motion.sweep_stride=-1"]), tmp_path,
                torch.device("cpu"))
+    for bad in ("skeleton.motion_frame=image", "skeleton.still_flow=0"):
+        with pytest.raises(ConfigError, match="motion_frame"):
+            Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=[bad]), tmp_path, torch.device("cpu"))
 
 
 def test_known_turn_rate_skips_the_scoring(tiny_sequence, tmp_path):
