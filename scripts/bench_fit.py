@@ -83,6 +83,11 @@ def phase_times(run: Path) -> dict:
     return out
 
 
+def figure_path(case: str, device: str, tag: str = "") -> Path:
+    """The repository's t_o figure of a sequence: ``renders/skeleton_t_o-CASE[-TAG]-DEVICE.png``."""
+    return REPO / "renders" / (f"skeleton_t_o-{case}" + (f"-{tag}" if tag else "") + f"-{device}.png")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="cpu")
@@ -96,6 +101,10 @@ def main(argv=None) -> int:
                     help="skeleton granularity study: fit once per merge threshold t_o (e.g. 0.99 0.95 0.90) and put the "
                          "three dominant-bone pictures side by side in renders/skeleton_t_o-CASE-DEVICE.png of the "
                          "repository (and renders/skeleton_t_o.png of the last run)")
+    ap.add_argument("--figure-tag", default="",
+                    help="with --t-o: name the repository's figure renders/skeleton_t_o-CASE-TAG-DEVICE.png, so a study "
+                         "with other settings (e.g. --set skeleton.motion_frame=body --figure-tag body) does not "
+                         "overwrite the sequence's figure")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")  # the fit's log (M-step edits) to stderr
 
@@ -148,7 +157,7 @@ def main(argv=None) -> int:
                 record(dest, header, entry)
         if pictures:  # the run's own copy, and the repository's figure for this sequence
             _compose(pictures, run / "renders" / "skeleton_t_o.png")
-            _compose(pictures, REPO / "renders" / f"skeleton_t_o-{case}-{device.type}.png")
+            _compose(pictures, figure_path(case, device.type, args.figure_tag))
     print(f"wrote {dest}")
     return 0
 

@@ -46,3 +46,9 @@ def test_record_from_processes_side_by_side_keeps_every_row(tmp_path):
         assert p.exitcode == 0
     rows = json.loads(dest.read_text())["results"]
     assert sorted((r["seed"], r["pck_t"]) for r in rows) == [(s, 14.0) for s in range(3)]
+
+
+def test_a_tagged_t_o_study_does_not_overwrite_the_sequences_figure():
+    plain, tagged = bench_fit.figure_path("horse", "cpu"), bench_fit.figure_path("horse", "cpu", "body")
+    assert plain.name == "skeleton_t_o-horse-cpu.png" and tagged.name == "skeleton_t_o-horse-body-cpu.png"
+    assert plain.parent == tagged.parent == bench_fit.REPO / "renders"
