@@ -299,7 +299,8 @@ class SkeletonConfig:
     (1 px at 96 px crops) stays with the body in that frame, and two such bones move together (it replaces
     min_flow there: the articulated motion of a part that does not articulate is the flow's and the fit's
     error, about a pixel at 96 px, not zero). On the horse's fast fit 0.01 gives 15, 15 and 11 bones at t_o
-    0.99, 0.95 and 0.90; 0.02 gave 12, 11 and 10 with the body, neck, head and tail merged into one bone."""
+    0.99, 0.95 and 0.90; 0.02 gave 12, 11 and 10 with the body, neck, head and tail merged into one bone. On
+    the built-in quadruped's fast fit 0.01 still merges the body, neck and head (15 bones at every t_o)."""
     min_frames: int = 2
     """Motion similarity: bone pairs with fewer usable frames are never merged."""
     far_fraction: float = 0.1
