@@ -139,8 +139,9 @@ def bone_motion_similarity(model, data, cfg) -> tuple[np.ndarray, np.ndarray]:
             M = torch.linalg.solve(A[:-1], A[1:])
         if sc.motion_frame == "body":  # frame t's articulated pose carried by frame t+1's root and camera
             RT = model.root_rt(fr)
-            obj = model.posed_object(fr, weights=W)
-            rigid = project(torch.einsum("tij,tnj->tni", RT[1:, :, :3], obj[:-1]) + RT[1:, None, :, 3], K[1:])
+            R, tr = RT[:, :, :3], RT[:, None, :, 3]
+            obj = torch.einsum("tji,tnj->tni", R[:-1], v[:-1] - tr[:-1])  # the posed v back in the object frame
+            rigid = project(torch.einsum("tij,tnj->tni", R[1:], obj) + tr[1:], K[1:])
         fb, ok = sk.bone_flow(v, K, data.flow_fwd[fr[:-1]], vis, W, conf=data.conf_fwd[fr[:-1]],
                               min_visible=sc.min_visible, min_mass=sc.min_mass, pair_transform=M,
                               rigid_next=rigid)

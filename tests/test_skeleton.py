@@ -79,18 +79,23 @@ def _bone_flow_naive(verts_cam, K, flow, visible, W, min_visible, min_mass):
     return F, ok
 
 
+def _two_parts(rng, N, x_max, y_max):
+    """``(N, 3)`` points at depth 2: the first half at x in [-x_max, -0.1], the second at [0.1, x_max]."""
+    X = np.zeros((N, 3))
+    X[: N // 2, 0] = rng.uniform(-x_max, -0.1, N // 2)
+    X[N // 2:, 0] = rng.uniform(0.1, x_max, N - N // 2)
+    X[:, 1] = rng.uniform(-y_max, y_max, N)
+    X[:, 2] = 2.0
+    return X
+
+
 def test_bone_flow_two_translating_parts_one_hidden():
     """Bone 0 on the left half (flow (+2, 1)), bone 1 on the right (flow (-3, 0)); hidden verts are ignored."""
     rng = np.random.default_rng(1)
     S, T, N = 64, 3, 200
     K = np.array([[50.0, 0, 31.5], [0, 50.0, 31.5], [0, 0, 1]])
     # vertices at depth 2: left part x in [-0.55, -0.1] -> cols ~ [18, 29]; right part x in [0.1, 0.55]
-    X = np.zeros((N, 3))
-    X[:100, 0] = rng.uniform(-0.55, -0.1, 100)
-    X[100:, 0] = rng.uniform(0.1, 0.55, 100)
-    X[:, 1] = rng.uniform(-0.4, 0.4, N)
-    X[:, 2] = 2.0
-    verts = np.repeat(X[None], T, 0)
+    verts = np.repeat(_two_parts(rng, N, 0.55, 0.4)[None], T, 0)
     flow = _flow_field(T - 1, S, lambda c, r, t: (np.where(c < 31.5, 2.0, -3.0), np.where(c < 31.5, 1.0, 0.0)))
     # hidden: 20 of bone 0's vertices are moved into the right half (wrong flow) but marked hidden
     verts[0, :20, 0] = 0.4
@@ -135,12 +140,7 @@ def test_bone_flow_in_the_frame_takes_out_the_crop_jitter():
     S, T, N = 64, 3, 200
     rng = np.random.default_rng(3)
     K = np.array([[50.0, 0, 31.5], [0, 50.0, 31.5], [0, 0, 1]])
-    X = np.zeros((N, 3))
-    X[:100, 0] = rng.uniform(-0.5, -0.1, 100)
-    X[100:, 0] = rng.uniform(0.1, 0.5, 100)
-    X[:, 1] = rng.uniform(-0.3, 0.3, N)
-    X[:, 2] = 2.0
-    verts = np.repeat(X[None], T, 0)
+    verts = np.repeat(_two_parts(rng, N, 0.5, 0.3)[None], T, 0)
     # crop_to_frame A_t = [[a, 0, ox], [0, a, oy]]: frame point x = a p + o
     A = np.array([[[a, 0, ox], [0, a, oy], [0, 0, 1]] for a, ox, oy in ((2.0, 10.0, 5.0), (2.1, 7.0, 6.0), (1.9, 12.0, 3.0))])
     move = np.zeros((T - 1, 2))  # part 0's frame flow per pair; part 1's is the argument of crop_flow
