@@ -326,6 +326,9 @@ class Fitter:
         if cfg.skeleton.motion_frame not in ("crop", "frame", "body") or not 0 < cfg.skeleton.still_flow < 1:
             raise ConfigError(f"skeleton.motion_frame must be 'crop', 'frame' or 'body' and skeleton.still_flow in (0, 1) "
                               f"(a fraction of the crop side); got {cfg.skeleton.motion_frame!r}, {cfg.skeleton.still_flow}")
+        if not 0 <= cfg.skeleton.min_frames_fraction <= 1:
+            raise ConfigError(f"skeleton.min_frames_fraction must be in [0, 1] (a fraction of the frame pairs; 0 = "
+                              f"skeleton.min_frames alone), got {cfg.skeleton.min_frames_fraction}")
         self.coarse = coarse_res
         self.model = S3OModel(coarse_res.init).to(device)
         self.edges = mesh_edges(self.model.faces).to(device)

@@ -19,7 +19,8 @@ With ``skeleton.mirror`` (not in the paper) the refinement takes the same decisi
 partner across the lift's symmetry plane (:func:`s3o_warp.skeleton.mirror_partners`), from whichever of the
 two is seen moving in more frames: a pair's motion similarity, a bone's length for the pruning and whether
 it gets a joint. A far-side leg is seen in fewer frames than its partner: its similarity to a neighbour is a
-minimum over fewer frames (or, seen in fewer than ``min_frames``, never allows a merge), so on its own it
+minimum over fewer frames (or, seen in fewer than ``min_frames`` or ``min_frames_fraction`` of the frame
+pairs, never allows a merge), so on its own it
 keeps or loses joints by what little of it the camera saw.
 
 After every edit the joints (bone pairs of the kinematic tree) are re-derived and placed at the mean of
@@ -30,6 +31,7 @@ the vertices both bones weigh >= t_r. Per-frame motion and optimiser state are c
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -110,6 +112,12 @@ def _apply(model, opt, state: SkeletonState, edit, what: str, epoch: int, sc) ->
 
 
 @torch.no_grad()
+def merge_min_frames(sc, num_frames: int) -> int:
+    """Fewest frame pairs a bone pair must be compared on before it may merge: the larger of
+    ``skeleton.min_frames`` and ``skeleton.min_frames_fraction`` of the ``num_frames - 1`` pairs."""
+    return max(int(sc.min_frames), int(math.ceil(float(sc.min_frames_fraction) * max(num_frames - 1, 0) - 1e-9)))
+
+
 def bone_motion_similarity(model, data, cfg) -> tuple[np.ndarray, np.ndarray]:
     """Eq. 4 + 8: per-bone flow over all frames (visible vertices only), min-over-frames cosine ``(B, B)``,
     and the ``(B, B)`` counts of frames each pair was compared on (:func:`s3o_warp.skeleton.motion_similarity`)."""
@@ -243,6 +251,17 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int, sym_plane=No
     else:
         S, N = bone_motion_similarity(model, data, cfg)
         kid = np.flatnonzero(state.parents >= 0)
+        few = merge_min_frames(sc, data.num_frames)
+        if len(kid):
+            par = state.parents[kid]
+            short = (N[kid, par] < few) & (S[kid, par] > sc.t_o)
+            if short.any():
+                log.info("M-step epoch %d: bones %s agree with their parents %s (%s) on only %s of %d frame pairs "
+                         "(skeleton.min_frames_fraction %.3g): not merged", epoch, kid[short].tolist(),
+                         par[short].tolist(), " ".join(f"{x:.3f}" for x in S[kid, par][short]),
+                         N[kid, par][short].tolist(), data.num_frames - 1, sc.min_frames_fraction)
+        S = np.where(N >= few, S, -np.inf)
+        np.fill_diagonal(S, 1.0)
         if len(kid):  # what t_o is compared with: the motion similarity of each bone and its parent
             s_pc = S[kid, state.parents[kid]]
             fin = s_pc[np.isfinite(s_pc)]

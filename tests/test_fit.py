@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import json
+import logging
 
 import numpy as np
 import pytest
@@ -393,6 +394,9 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
     with pytest.raises(ConfigError, match="sweep_stride"):
         Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["motion.sweep_stride=-1"]), tmp_path,
                torch.device("cpu"))
+    with pytest.raises(ConfigError, match="min_frames_fraction"):
+        Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["skeleton.min_frames_fraction=1.5"]),
+               tmp_path, torch.device("cpu"))
     for bad in ("skeleton.motion_frame=image", "skeleton.still_flow=0"):
         with pytest.raises(ConfigError, match="motion_frame"):
             Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=[bad]), tmp_path, torch.device("cpu"))
@@ -543,6 +547,36 @@ def test_m_step_prunes_short_bones_and_keeps_the_loss(tiny_sequence, tmp_path):
     # 0 = the paper: nothing is pruned
     cfg.skeleton.min_bone_length = 0.0
     assert not m_step(f.model, f.opt, data, cfg, f.skel, cfg.skeleton.e1 + 1)
+
+
+def test_m_step_does_not_merge_on_a_few_frames(tiny_sequence, tmp_path, caplog):
+    """A pair that agrees (> t_o) merges when compared on enough frame pairs, and is kept apart, with one log
+    line, when skeleton.min_frames_fraction asks for more frame pairs than it was compared on."""
+    from s3o_warp.mstep import bone_motion_similarity, merge_min_frames, m_step
+
+    cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
+    sc = cfg.skeleton
+    sc.min_bone_length, sc.t_d, sc.merge_mode = 0.0, 1e9, "greedy"  # merges only
+    S, N = bone_motion_similarity(f.model, data, cfg)
+    P, B0 = f.skel.parents, f.model.num_bones
+    kids = [b for b in range(B0) if P[b] >= 0 and np.isfinite(S[b, P[b]])]
+    assert kids, "expected a parent-child pair compared on some frames"
+    b = max(kids, key=lambda c: S[c, P[c]])
+    sc.t_o = float(S[b, P[b]]) - 1e-4  # b and its parent (and nothing else, or more alike pairs) agree
+    merges = sum(1 for c in kids if S[c, P[c]] > sc.t_o)
+    g = copy.deepcopy(f)
+    g.opt = g._make_optimizer()
+    sc.min_frames_fraction = 0.0
+    assert merge_min_frames(sc, data.num_frames) == sc.min_frames
+    assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones == B0 - merges
+    gc = g.cfg.skeleton
+    gc.t_o, gc.min_bone_length, gc.t_d, gc.merge_mode = sc.t_o, 0.0, 1e9, "greedy"
+    gc.min_frames_fraction = min(1.0, (int(N[b, P[b]]) + 0.5) / (data.num_frames - 1))  # one frame pair more
+    assert merge_min_frames(gc, data.num_frames) == int(N[b, P[b]]) + 1
+    with caplog.at_level(logging.INFO, logger="s3o_warp.mstep"):
+        m_step(g.model, g.opt, data, g.cfg, g.skel, gc.e1 + 1)
+    assert g.model.num_bones == B0 - sum(1 for c in kids if S[c, P[c]] > sc.t_o and N[c, P[c]] > N[b, P[b]])
+    assert any("not merged" in r.getMessage() and str(b) in r.getMessage() for r in caplog.records)
 
 
 def _lengths_vary(f, data, cfg):
