@@ -898,15 +898,24 @@ def gt_limbs(parents: np.ndarray, names: list[str] | None = None) -> list[dict]:
     return limbs
 
 
-def _point_polyline_distance(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
-    """Distance of each of ``points (M, 3)`` to the polyline ``poly (K, 3)`` (K = 1: to that point)."""
+def _point_polyline_distance(points: np.ndarray, poly: np.ndarray, along: bool = False):
+    """Distance of each of ``points (M, 3)`` to the polyline ``poly (K, 3)`` (K = 1: to that point); with
+    ``along`` also where the nearest point of the polyline is, as a fraction of its length from its start."""
     if len(poly) == 1:
-        return np.linalg.norm(points - poly[0], axis=-1)
+        d = np.linalg.norm(points - poly[0], axis=-1)
+        return (d, np.zeros(len(points))) if along else d
     a, b = poly[:-1], poly[1:]
     ab = b - a
-    t = np.einsum("mkd,kd->mk", points[:, None] - a[None], ab) / np.maximum((ab * ab).sum(-1), 1e-12)
-    q = a[None] + np.clip(t, 0, 1)[..., None] * ab[None]
-    return np.linalg.norm(points[:, None] - q, axis=-1).min(1)
+    t = np.clip(np.einsum("mkd,kd->mk", points[:, None] - a[None], ab) / np.maximum((ab * ab).sum(-1), 1e-12), 0, 1)
+    q = a[None] + t[..., None] * ab[None]
+    dk = np.linalg.norm(points[:, None] - q, axis=-1)
+    k = dk.argmin(1)
+    if not along:
+        return dk[np.arange(len(points)), k]
+    seg = np.linalg.norm(ab, axis=-1)
+    start = np.concatenate([[0.0], np.cumsum(seg)[:-1]])
+    s = (start[k] + t[np.arange(len(points)), k] * seg[k]) / max(seg.sum(), 1e-12)
+    return dk[np.arange(len(points)), k], s
 
 
 def chain_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, chain, diag: np.ndarray,
@@ -914,17 +923,25 @@ def chain_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, chain, diag: 
     """Is there a learned joint chain along one ground-truth joint chain (``chain``: joint indices, a polyline;
     one index: a point)? The test of :func:`limb_coverage` for any chain, for example a neck between two
     branchings. Returns ``median_pred_joints`` (within ``tol`` x the bbox diagonal), ``covered`` (``min_joints``
-    or more in at least half of the frames) and ``tol_needed`` (covered at every ``tol`` above it; None with
-    fewer than ``min_joints`` predicted joints)."""
+    or more in at least half of the frames), ``tol_needed`` (covered at every ``tol`` above it; None with
+    fewer than ``min_joints`` predicted joints) and ``median_span``: per frame, how much of the chain's length
+    lies between the first and the last of the joints within ``tol`` (their nearest points on it), the median
+    over the frames. Two joints in a knot at the hip cover a leg with a span near 0; a hip and a knee, about
+    half of it."""
     pj = sim(pred_joints) if sim is not None else np.asarray(pred_joints, dtype=np.float64)
     gj = np.asarray(gt_joints, dtype=np.float64)
     T = gj.shape[0]
-    d = np.stack([_point_polyline_distance(pj[t], gj[t, list(chain)]) / diag[t] for t in range(T)])
+    ds = [_point_polyline_distance(pj[t], gj[t, list(chain)], along=True) for t in range(T)]
+    d = np.stack([x[0] / diag[t] for t, x in enumerate(ds)])
+    pos = np.stack([x[1] for x in ds])
     counts = (d < tol).sum(1)
+    near = d < tol
+    span = np.where(near.any(1), np.where(near, pos, -np.inf).max(1) - np.where(near, pos, np.inf).min(1), 0.0)
     # the min_joints-th nearest joint per frame; covered iff it is < tol in ceil(T / 2) frames or more
     kth = np.sort(d, axis=1)[:, min_joints - 1] if d.shape[1] >= min_joints else None
     return {"median_pred_joints": float(np.median(counts)), "covered": bool((counts >= min_joints).mean() >= 0.5),
-            "tol_needed": None if kth is None else float(np.sort(kth)[int(np.ceil(T / 2)) - 1])}
+            "tol_needed": None if kth is None else float(np.sort(kth)[int(np.ceil(T / 2)) - 1]),
+            "median_span": float(np.median(span))}
 
 
 def limb_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, gt_parents: np.ndarray, diag: np.ndarray,

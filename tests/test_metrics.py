@@ -566,6 +566,13 @@ def test_limb_coverage_on_a_hand_made_tree():
     part = limb_coverage(pred, gt, parents, diag)
     got = {l["limb"]: l["covered"] for l in part["limbs"]}
     assert got == {"joint_3": True, "joint_5": False, "joint_6": False} and part["covered"] == 1
+    # the span along the chain: the leg j1 -> j2 -> j3 is 2 long, its joints sit at 1.2 and 1.8 of it; a knot
+    # of two joints near one point spans almost nothing, one joint nothing
+    span = {l["limb"]: l["median_span"] for l in part["limbs"]}
+    assert abs(span["joint_3"] - 0.3) < 1e-12 and span["joint_5"] == 0.0
+    knot = np.repeat(np.array([[[1, 1.2, 5], [1.05, 1.25, 5]]]), 3, 0)
+    k3 = {l["limb"]: l for l in limb_coverage(knot, gt, parents, diag)["limbs"]}["joint_3"]
+    assert k3["covered"] and abs(k3["median_span"] - 0.025) < 1e-12
     # tol_needed: covered at every tolerance above it, not at or below it
     need = {l["limb"]: l["tol_needed"] for l in part["limbs"]}
     assert need["joint_3"] == 0.0  # both joints on the polyline
