@@ -934,8 +934,8 @@ def chain_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, chain, diag: 
     ds = [_point_polyline_distance(pj[t], gj[t, list(chain)], along=True) for t in range(T)]
     d = np.stack([x[0] / diag[t] for t, x in enumerate(ds)])
     pos = np.stack([x[1] for x in ds])
-    counts = (d < tol).sum(1)
     near = d < tol
+    counts = near.sum(1)
     span = np.where(near.any(1), np.where(near, pos, -np.inf).max(1) - np.where(near, pos, np.inf).min(1), 0.0)
     # the min_joints-th nearest joint per frame; covered iff it is < tol in ceil(T / 2) frames or more
     kth = np.sort(d, axis=1)[:, min_joints - 1] if d.shape[1] >= min_joints else None

@@ -111,13 +111,13 @@ def _apply(model, opt, state: SkeletonState, edit, what: str, epoch: int, sc) ->
     return True
 
 
-@torch.no_grad()
 def merge_min_frames(sc, num_frames: int) -> int:
     """Fewest frame pairs a bone pair must be compared on before it may merge: the larger of
     ``skeleton.min_frames`` and ``skeleton.min_frames_fraction`` of the ``num_frames - 1`` pairs."""
     return max(int(sc.min_frames), int(math.ceil(float(sc.min_frames_fraction) * max(num_frames - 1, 0) - 1e-9)))
 
 
+@torch.no_grad()
 def bone_motion_similarity(model, data, cfg) -> tuple[np.ndarray, np.ndarray]:
     """Eq. 4 + 8: per-bone flow over all frames (visible vertices only), min-over-frames cosine ``(B, B)``,
     and the ``(B, B)`` counts of frames each pair was compared on (:func:`s3o_warp.skeleton.motion_similarity`)."""
