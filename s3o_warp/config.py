@@ -108,6 +108,9 @@ class MotionConfig:
     """Even resampling of the canonical mesh (paper B) every this many epochs of the joint phase; 0 = never."""
     resample_vertices: int = 0
     """Vertex count the resampled mesh aims at; 0 = the coarse mesh's count."""
+    resample_method: str = "marching"
+    """How the mesh is resampled (``s3o_warp.resample``): marching (marching cubes of its distance field, like
+    LASR's and S3O's Manifold) or isotropic (pymeshlab's isotropic remeshing of the surface itself)."""
     hypothesis_root_only: bool = True
     """Score each hypothesis with only the root and camera free (the bones cannot absorb a wrong turn)."""
     hypothesis_score: str = "flow"

@@ -326,6 +326,8 @@ class Fitter:
         if cfg.skeleton.motion_frame not in ("crop", "frame", "body") or not 0 < cfg.skeleton.still_flow < 1:
             raise ConfigError(f"skeleton.motion_frame must be 'crop', 'frame' or 'body' and skeleton.still_flow in (0, 1) "
                               f"(a fraction of the crop side); got {cfg.skeleton.motion_frame!r}, {cfg.skeleton.still_flow}")
+        if cfg.motion.resample_method not in ("marching", "isotropic"):
+            raise ConfigError(f"motion.resample_method must be 'marching' or 'isotropic', got {cfg.motion.resample_method!r}")
         if not 0 <= cfg.skeleton.min_frames_fraction <= 1:
             raise ConfigError(f"skeleton.min_frames_fraction must be in [0, 1] (a fraction of the frame pairs; 0 = "
                               f"skeleton.min_frames alone), got {cfg.skeleton.min_frames_fraction}")
@@ -938,8 +940,8 @@ class Fitter:
         m, mc = self.model, self.cfg.motion
         target = mc.resample_vertices or len(self.coarse.init.verts)
         n0 = m.verts.shape[0]
-        v, f, col = even_resample(m.verts.detach(), m.faces, ResampleSettings(target_vertices=int(target)),
-                                  attributes=m.color_logits.detach())
+        rs = ResampleSettings(target_vertices=int(target), method=mc.resample_method)
+        v, f, col = even_resample(m.verts.detach(), m.faces, rs, attributes=m.color_logits.detach())
         self._set_mesh(v, f, col)
         self._log({"phase": "eval", "step": self.step, "seconds": round(time.perf_counter() - self.t0, 3),
                    "what": "resample", "vertices_before": int(n0), "vertices_after": int(v.shape[0])})

@@ -234,6 +234,92 @@ def test_even_resample_keeps_thin_leg(device, repair):
     assert (_unsigned(nv, nf, verts) > 1.5 * h).float().mean() <= s.coverage_fraction
 
 
+def _sphere_with_legs(n: int = 12, radius: float = 0.03, length: float = 1.0, seed: int = 0):
+    """A unit sphere with n thin capped cylinders sticking out in random directions, and the legs' tips."""
+    s = trimesh.creation.icosphere(3)
+    vs, fs, tips, off = [s.vertices], [s.faces], [], len(s.vertices)
+    rng = np.random.default_rng(seed)
+    for _ in range(n):
+        d = rng.normal(size=3)
+        d /= np.linalg.norm(d)
+        c = trimesh.creation.cylinder(radius=radius, segment=[d * 0.93, d * (0.93 + length)], sections=12)
+        vs.append(c.vertices)
+        fs.append(c.faces + off)
+        off += len(c.vertices)
+        tips.append(d * (0.93 + length))
+    return (torch.tensor(np.concatenate(vs), dtype=torch.float32), torch.tensor(np.concatenate(fs)),
+            torch.tensor(np.array(tips), dtype=torch.float32))
+
+
+def test_even_resample_never_passes_its_vertex_cap(caplog):
+    """Twelve legs thinner than the grid: dilating them adds so much surface that the refinement's next grid
+    would make 1324 vertices against a cap of 1.5 x 600 x 1.15 (which the repair used to return). It stops below the
+    cap instead, keeps the attempt that lost the fewest old vertices, and says so."""
+    verts, faces, _ = _sphere_with_legs()
+    s = ResampleSettings(target_vertices=600, max_vertices_factor=1.5)
+    with caplog.at_level("WARNING", logger="s3o_warp.resample"):
+        nv, nf, _ = even_resample(verts, faces, s)
+    assert len(nv) <= 1.5 * 600 * (1 + s.vertex_tolerance)
+    after = _trimesh(nv, nf)
+    assert after.is_watertight and after.is_winding_consistent
+    assert "raise resample.max_vertices_factor" in caplog.text
+
+
+def _needle(radius: float = 0.03, length: float = 1.0):
+    """One closed surface of revolution: a unit ball with a leg of this radius up the z axis; and the leg's tip."""
+    theta = np.linspace(0.0, np.pi - np.arcsin(radius), 48)  # polar angle from the south pole to the leg
+    profile = np.stack([np.sin(theta), -np.cos(theta)], 1)
+    profile = np.concatenate([profile, [[radius, 1.0 + 0.5 * length], [radius, 1.0 + length], [0.0, 1.0 + length]]])
+    m = trimesh.creation.revolve(profile, sections=24)
+    return (torch.tensor(m.vertices, dtype=torch.float32), torch.tensor(m.faces),
+            torch.tensor([[0.0, 0.0, 1.0 + length]]))
+
+
+@pytest.mark.parametrize("shape", ["ellipsoid", "needle"])
+def test_isotropic_resample_evens_the_surface_and_keeps_thin_parts(device, shape):
+    """method=isotropic remeshes the surface itself: the count near the target, edges more even, the volume
+    kept, and legs thinner than marching cubes' grid all there (every old vertex near the new surface)."""
+    pytest.importorskip("pymeshlab")
+    if shape == "ellipsoid":
+        verts, faces = _uneven_ellipsoid()
+        tips = None
+    else:
+        verts, faces, tips = _needle()
+    before = _trimesh(verts, faces)
+    assert before.body_count == 1
+    target = 1000 if shape == "ellipsoid" else 600
+    s = ResampleSettings(method="isotropic", target_vertices=target)
+    nv, nf, _ = even_resample(verts.to(device), faces.to(device), s)
+    assert nv.device == verts.to(device).device and nv.dtype == torch.float32 and nf.dtype == torch.int64
+    nv, nf = nv.cpu(), nf.cpu()
+    after = _trimesh(nv, nf)
+    assert after.is_watertight and after.is_winding_consistent and after.body_count == 1
+    assert abs(len(nv) - target) <= s.vertex_tolerance * target
+    assert _edge_cv(after) < _edge_cv(before)
+    assert abs(after.volume / before.volume - 1.0) < 0.03
+    mean_edge = float(after.edges_unique_length.mean())
+    assert _unsigned(nv, nf, verts).max() < 0.5 * mean_edge  # nothing of the old surface lost
+    assert _unsigned(verts, faces, nv).max() < 0.1 * mean_edge  # new vertices on the old surface
+    if tips is not None:
+        assert _unsigned(nv, nf, tips).max() < 0.2 * mean_edge
+    # the marching-cubes path at this count loses legs (or has to dilate them)
+    mv, mf, _ = even_resample(verts, faces, ResampleSettings(target_vertices=target, dilate_steps=(),
+                                                             max_vertices_factor=1.0))
+    if tips is not None:
+        assert _unsigned(mv, mf, tips).max() > 0.5
+
+
+def test_isotropic_resample_carries_linear_attributes():
+    pytest.importorskip("pymeshlab")
+    verts, faces = _uneven_ellipsoid(bend=0.3)
+    a = torch.tensor([[0.5, -1.0], [2.0, 0.3], [-0.7, 1.1]])
+    attrs = verts @ a
+    s = ResampleSettings(method="isotropic", target_vertices=700, keep_volume=False)
+    nv, _, new = even_resample(verts, faces, s, attributes=attrs)
+    assert new.shape == (len(nv), 2)
+    assert ((new - nv @ a).abs().max(1).values < 1e-4).float().mean() > 0.95  # vertices on the old surface
+
+
 def test_repeated_resampling_keeps_volume_and_count():
     """Every-epoch use: ten resamplings at a fixed target neither shrink the mesh nor drift in count."""
     verts, faces = _uneven_ellipsoid(subdivisions=2, radii=(1.5, 0.5, 0.4))
@@ -279,6 +365,10 @@ def test_resample_settings_validation():
         ResampleSettings(dilate_steps=(0.5, 0.25))
     with pytest.raises(ConfigError, match="resample.refine_step"):
         ResampleSettings().replace(refine_step=1.0)
+    with pytest.raises(ConfigError, match="resample.method"):
+        ResampleSettings(method="manifold")
+    with pytest.raises(ConfigError, match="resample.isotropic_iterations"):
+        ResampleSettings(isotropic_iterations=0)
     with pytest.raises(ConfigError, match="resample.bogus is not a setting"):
         ResampleSettings().replace(bogus=1)
     assert ResampleSettings().replace(trials=2).trials == 2
