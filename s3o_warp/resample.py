@@ -20,6 +20,11 @@ Object frame and units are the input's; with ``symmetric_z`` the grid is mirror-
 plane z = 0 (the model's symmetry plane, see ``s3o_warp.coarse_lift``) and its two halves are
 marched separately, the lower one as the mirror image of an upper one, so a mirror-symmetric mesh
 gets a mirror-symmetric triangulation and stays mirror-symmetric vertex for vertex.
+
+``method="isotropic"`` skips the grid: pymeshlab's isotropic explicit remeshing works on the surface
+itself (so thin parts stay, whatever the count), followed by the same projection, volume offset and
+attribute transfer. It keeps the input's topology: self-intersections stay, and the triangulation is not
+mirror-symmetric.
 """
 
 from __future__ import annotations
@@ -565,6 +570,9 @@ def even_resample(
     attributes: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """Rebuild a closed mesh with about evenly spaced vertices on the same surface.
+
+    Steps with ``settings.method="marching"`` (the default); ``"isotropic"`` replaces 1-4 and 6 with
+    pymeshlab's isotropic remeshing at the edge length that gives the target count (see the module).
 
     1. Signed distance (winding-number sign) of the mesh on a cubic grid of spacing h covering its
        bounding box plus ``margin_cells`` cells; the z axis is mirror-symmetric about z = 0 when

@@ -397,6 +397,9 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
     with pytest.raises(ConfigError, match="min_frames_fraction"):
         Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["skeleton.min_frames_fraction=1.5"]),
                tmp_path, torch.device("cpu"))
+    with pytest.raises(ConfigError, match="motion.resample_method"):
+        Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["motion.resample_method=manifold"]),
+               tmp_path, torch.device("cpu"))
     for bad in ("skeleton.motion_frame=image", "skeleton.still_flow=0"):
         with pytest.raises(ConfigError, match="motion_frame"):
             Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=[bad]), tmp_path, torch.device("cpu"))
@@ -649,10 +652,14 @@ def test_m_step_decides_mirror_partners_by_the_better_seen_one(tiny_sequence, tm
     _assert_no_jump(before, after, loss0, loss1)
 
 
-def test_even_resampling_in_the_fit_keeps_the_render_and_the_loss(tiny_sequence, tmp_path):
+@pytest.mark.parametrize("method", ["marching", "isotropic"])
+def test_even_resampling_in_the_fit_keeps_the_render_and_the_loss(tiny_sequence, tmp_path, method):
     from s3o_warp.kernels.raster import rasterize
 
+    if method == "isotropic":
+        pytest.importorskip("pymeshlab")
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
+    f.cfg.motion.resample_method = method
     m, S = f.model, data.crop_size
 
     def state():
@@ -668,6 +675,8 @@ def test_even_resampling_in_the_fit_keeps_the_render_and_the_loss(tiny_sequence,
     assert iou > 0.9, iou  # the same surface, posed by the same skeleton
     assert abs(loss1 - loss0) < 0.15 * loss0, (loss0, loss1)
     assert abs(m.verts.shape[0] - len(f.coarse.init.verts)) <= 0.15 * len(f.coarse.init.verts) or m.verts.shape[0] != n0
+    if method == "isotropic":  # no grid: the count lands near the target
+        assert abs(m.verts.shape[0] - len(f.coarse.init.verts)) <= 0.15 * len(f.coarse.init.verts)
     assert f.edges.max() < m.verts.shape[0]
     # the optimiser keeps the motion's Adam state and steps the new vertices
     torch.testing.assert_close(f.opt.state[m.bone_aa]["exp_avg"], bones_state)
