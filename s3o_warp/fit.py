@@ -328,6 +328,12 @@ class Fitter:
                               f"(a fraction of the crop side); got {cfg.skeleton.motion_frame!r}, {cfg.skeleton.still_flow}")
         if cfg.motion.resample_method not in ("marching", "isotropic"):
             raise ConfigError(f"motion.resample_method must be 'marching' or 'isotropic', got {cfg.motion.resample_method!r}")
+        if cfg.motion.resample_method == "isotropic" and cfg.motion.resample_epochs > 0:
+            import importlib.util
+
+            if importlib.util.find_spec("pymeshlab") is None:  # say so now, not at the first resampling
+                raise ConfigError("motion.resample_method=isotropic needs pymeshlab: pip install pymeshlab (or "
+                                  "pip install 's3o-warp[remesh]'), or set motion.resample_method=marching")
         if not 0 <= cfg.skeleton.min_frames_fraction <= 1:
             raise ConfigError(f"skeleton.min_frames_fraction must be in [0, 1] (a fraction of the frame pairs; 0 = "
                               f"skeleton.min_frames alone), got {cfg.skeleton.min_frames_fraction}")

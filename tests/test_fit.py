@@ -400,6 +400,14 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
     with pytest.raises(ConfigError, match="motion.resample_method"):
         Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["motion.resample_method=manifold"]),
                tmp_path, torch.device("cpu"))
+    import importlib.util
+
+    real_find_spec = importlib.util.find_spec
+    with pytest.MonkeyPatch.context() as mp:  # without pymeshlab, isotropic resampling is refused before the fit
+        mp.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "pymeshlab" else real_find_spec(name, *a))
+        with pytest.raises(ConfigError, match="needs pymeshlab"):
+            Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["motion.resample_method=isotropic"]),
+                   tmp_path, torch.device("cpu"))
     for bad in ("skeleton.motion_frame=image", "skeleton.still_flow=0"):
         with pytest.raises(ConfigError, match="motion_frame"):
             Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=[bad]), tmp_path, torch.device("cpu"))
