@@ -369,12 +369,19 @@ def _project(verts: torch.Tensor, faces: torch.Tensor, onto: torch.Tensor, min_a
 
 def _finish(surf: _Surface, v: torch.Tensor, f: torch.Tensor, s: ResampleSettings) -> _Candidate:
     """Smooth, project onto the old surface (v, f), measure the old vertices' distance to the result."""
+    mesh, partner = _smooth(surf, s)
+    return _onto_old(np.asarray(mesh.vertices), np.asarray(mesh.faces), v, f, s, surf, partner)
+
+
+def _onto_old(verts: np.ndarray, faces: np.ndarray, v: torch.Tensor, f: torch.Tensor, s: ResampleSettings,
+              surf: _Surface, partner: np.ndarray | None) -> _Candidate:
+    """A new mesh projected onto the old surface (v, f) with ``s.project``, and the old vertices' loss from it
+    (farther than ``coverage_distance`` x ``surf.h``)."""
     from s3o_warp.kernels.sdf import closest_point
 
-    mesh, partner = _smooth(surf, s)
     dev = v.device
-    nv = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float32, device=dev)
-    nf = torch.as_tensor(np.asarray(mesh.faces), dtype=torch.int64, device=dev)
+    nv = torch.as_tensor(verts, dtype=torch.float32, device=dev)
+    nf = torch.as_tensor(faces, dtype=torch.int64, device=dev)
     kept = 0
     if s.project:
         _, face, bary = closest_point(v, f, nv, accuracy=s.winding_accuracy)
@@ -513,8 +520,6 @@ def _isotropic(v: torch.Tensor, f: torch.Tensor, target: int, area: float, s: Re
                name: str) -> _Candidate:
     """Steps 1-6 of :func:`even_resample` with ``method="isotropic"``: pymeshlab's isotropic explicit remeshing
     at the edge length l that gives the target count (searched like the grid spacing), then the projection."""
-    from s3o_warp.kernels.sdf import closest_point
-
     try:
         import pymeshlab
     except ImportError:
@@ -543,20 +548,12 @@ def _isotropic(v: torch.Tensor, f: torch.Tensor, target: int, area: float, s: Re
         raise InputError(f"{name}(): isotropic remeshing left no vertices; resample a closed, manifold mesh "
                          "or set motion.resample_method=marching")
     _, V, Fn, length = best
-    nv = torch.as_tensor(V, dtype=torch.float32, device=v.device)
-    nf = torch.as_tensor(Fn, dtype=torch.int64, device=v.device)
-    kept = 0
-    if s.project:
-        _, face, bary = closest_point(v, f, nv, accuracy=s.winding_accuracy)
-        onto = (bary[:, :, None] * v[f[face.clamp_min(0)]]).sum(1)
-        nv, kept = _project(nv, nf, onto, s.min_area_kept)
-    dist, _, _ = closest_point(nv, nf, v, accuracy=s.winding_accuracy)
-    lost = float((dist.abs() > s.coverage_distance * length).float().mean())
-    if lost > s.coverage_fraction:
+    result = _onto_old(V, Fn, v, f, s, _Surface(V, Fn, length, 0.0, 1), None)
+    if result.lost > s.coverage_fraction:
         log.warning("%s: %.1f%% of the old vertices stay farther than %.3g from the remeshed surface; raise "
-                    "resample.isotropic_iterations or lower resample.isotropic_surface_distance", name, 100 * lost,
-                    s.coverage_distance * length)
-    return _Candidate(nv, nf, _Surface(V, Fn, length, 0.0, 1), lost, kept, None)
+                    "resample.isotropic_iterations or lower resample.isotropic_surface_distance", name,
+                    100 * result.lost, s.coverage_distance * length)
+    return result
 
 
 # --------------------------------------------------------------------------------------------------
