@@ -277,7 +277,7 @@ def _limb_pairs(lifted, bones) -> tuple:
 # Optimisation
 # ---------------------------------------------------------------------------------------------------
 
-PHASES = ("coarse", "warmup", "joint")
+PHASES = ("coarse", "warmup", "joint", "polish")
 
 
 class FitDiverged(InputError):
@@ -326,6 +326,12 @@ class Fitter:
         if cfg.skeleton.motion_frame not in ("crop", "frame", "body") or not 0 < cfg.skeleton.still_flow < 1:
             raise ConfigError(f"skeleton.motion_frame must be 'crop', 'frame' or 'body' and skeleton.still_flow in (0, 1) "
                               f"(a fraction of the crop side); got {cfg.skeleton.motion_frame!r}, {cfg.skeleton.still_flow}")
+        if cfg.motion.polish_steps < 0 or not cfg.motion.polish_lr_factor > 0:
+            raise ConfigError(f"motion.polish_steps must be >= 0 (0 = off) and motion.polish_lr_factor > 0, got "
+                              f"{cfg.motion.polish_steps} and {cfg.motion.polish_lr_factor}")
+        if not 0 <= cfg.motion.resample_max_lost <= 1:
+            raise ConfigError(f"motion.resample_max_lost must be in [0, 1] (a fraction of the old vertices; 1 = always "
+                              f"use the resampling), got {cfg.motion.resample_max_lost}")
         if cfg.motion.resample_method not in ("marching", "isotropic"):
             raise ConfigError(f"motion.resample_method must be 'marching' or 'isotropic', got {cfg.motion.resample_method!r}")
         if cfg.motion.resample_method == "isotropic" and cfg.motion.resample_epochs > 0:
@@ -456,7 +462,9 @@ class Fitter:
         return Adam(groups)  # torch's Adam; the shape group steps uniformly under large steps
 
     def phase_steps(self, phase: str) -> int:
-        return {"coarse": self.cfg.coarse.steps, "warmup": self.cfg.motion.warmup_steps, "joint": self.cfg.motion.steps}[phase]
+        mc = self.cfg.motion
+        return {"coarse": self.cfg.coarse.steps, "warmup": mc.warmup_steps, "joint": mc.steps,
+                "polish": mc.polish_steps}[phase]
 
     # -- losses -------------------------------------------------------------------------------------
     def coarse_losses(self) -> dict:
@@ -506,6 +514,8 @@ class Fitter:
 
     def sigma(self, start: float, final: float) -> float:
         """Soft-silhouette sigma of the current step: geometric decay from start to final over the phase."""
+        if self.phase == "polish":
+            return float(final)
         n = max(1, self.phase_steps(self.phase) - 1)
         return float(start * (final / start) ** min(1.0, self.step / n))
 
@@ -593,7 +603,7 @@ class Fitter:
         if mc.w_joint > 0 and len(self.skel.joints):
             J, P = self._joint_tensors()
             terms["joint"] = (mc.w_joint, L.joint_attachment_loss(m.bone_rt(frames), J, P, self.size))
-        if self.phase == "joint":
+        if self.phase in ("joint", "polish"):
             terms["lap"] = (mc.w_lap, laplacian_loss(m.verts - self.lap_ref if mc.lap_relative else m.verts, m.faces))
             terms["sym"] = (mc.w_sym, symmetry_loss(m.verts, self.sym_plane))
         k = mc.smooth_order
@@ -647,6 +657,8 @@ class Fitter:
             self._log({"phase": "eval", "step": 0, "seconds": round(time.perf_counter() - self.t0, 3),
                        "what": "initial", "iou_all_frames": self.hard_iou()})
         for phase in PHASES[PHASES.index(self.phase):]:
+            if phase == "polish" and self.phase != "polish" and self.phase_steps(phase) <= 0:
+                continue  # off: the fit ends with the joint phase, as without it
             if phase != self.phase:
                 if self.phase == "coarse":
                     self.refit_bones_to_parts()
@@ -654,8 +666,12 @@ class Fitter:
                     self.resolve_crossings()
                 self.phase, self.step = phase, 0
                 self.opt = self._make_optimizer()
+                if phase == "polish":  # the joint phase's groups, slower; the Laplacian keeps its reference
+                    for g in self.opt.param_groups:
+                        g["lr"] *= self.cfg.motion.polish_lr_factor
+                else:
+                    self.lap_ref = self.model.verts.detach().clone()
                 self._good = None
-                self.lap_ref = self.model.verts.detach().clone()
                 self.save_checkpoint()
             n = self.phase_steps(phase)
             if phase == "warmup" and self.step == 0 and (self.cfg.motion.hypotheses > 1
@@ -946,12 +962,14 @@ class Fitter:
         m, mc = self.model, self.cfg.motion
         target = mc.resample_vertices or len(self.coarse.init.verts)
         n0 = m.verts.shape[0]
-        rs = ResampleSettings(target_vertices=int(target), method=mc.resample_method)
+        rs = ResampleSettings(target_vertices=int(target), method=mc.resample_method, max_lost=mc.resample_max_lost)
         v, f, col = even_resample(m.verts.detach(), m.faces, rs, attributes=m.color_logits.detach())
-        self._set_mesh(v, f, col)
+        kept = f.shape == m.faces.shape and torch.equal(f.to(m.faces.device), m.faces) and torch.equal(v, m.verts.detach())
+        if not kept:  # else: refused (resample.max_lost), the mesh and the optimiser's state stay as they are
+            self._set_mesh(v, f, col)
         self._log({"phase": "eval", "step": self.step, "seconds": round(time.perf_counter() - self.t0, 3),
-                   "what": "resample", "vertices_before": int(n0), "vertices_after": int(v.shape[0])})
-        log.info("even resampling: %d -> %d vertices", n0, v.shape[0])
+                   "what": "resample", "vertices_before": int(n0), "vertices_after": int(v.shape[0]), "kept": kept})
+        log.info("even resampling: %d -> %d vertices%s", n0, v.shape[0], " (not used: the mesh is kept)" if kept else "")
 
     def _set_mesh(self, verts: torch.Tensor, faces: torch.Tensor, color_logits: torch.Tensor) -> None:
         """Swap the canonical mesh; the optimiser keeps every other parameter's state (and all learning rates)."""

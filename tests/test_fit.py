@@ -221,6 +221,59 @@ def test_same_seed_repeats_bit_for_bit_on_threads(tiny_sequence, tmp_path):
     assert not differ, f"same seed, different {differ}"
 
 
+def test_polish_steps_settle_on_the_final_skeleton_slower_and_resume(tiny_sequence, tmp_path, monkeypatch):
+    """``motion.polish_steps``: after the joint phase, steps with every learning rate x polish_lr_factor, the final
+    sigma, no M-step and no resampling; an interrupt in the polish resumes to the uninterrupted result."""
+    import json
+
+    over = {"coarse.steps": 4, "motion.warmup_steps": 4, "motion.steps": 6, "skeleton.epochs": 3, "skeleton.e1": 1,
+            "motion.polish_steps": 5, "motion.polish_lr_factor": 0.25, "motion.log_every": 1}
+    cfg = _cfg(**over)
+    a, b = tmp_path / "a", tmp_path / "b"
+    seen = []
+    orig_losses, orig_m = Fitter.motion_losses, Fitter._m_step
+
+    def watch(self, frames):
+        if self.phase == "polish":
+            seen.append((self.sigma(self.cfg.motion.sigma, self.cfg.motion.sigma_final), self.model.num_bones))
+        return orig_losses(self, frames)
+
+    def no_m_step_in_polish(self, n):
+        assert self.phase == "joint", "an M-step (or resampling) ran outside the joint phase"
+        return orig_m(self, n)
+
+    monkeypatch.setattr(Fitter, "motion_losses", watch)
+    monkeypatch.setattr(Fitter, "_m_step", no_m_step_in_polish)
+    fit(tiny_sequence, a, cfg, torch.device("cpu"))
+    assert len(seen) == 5 and all(sg == cfg.motion.sigma_final for sg, _ in seen)
+    assert len({nb for _, nb in seen}) == 1  # the skeleton does not change in the polish
+    rows = [json.loads(line) for line in open(a / "log.jsonl")]
+    joint = [r for r in rows if r.get("phase") == "joint" and "lr" in r]
+    polish = [r for r in rows if r.get("phase") == "polish" and "lr" in r]
+    assert [r["step"] for r in polish] == [1, 2, 3, 4, 5]
+    for k, lr in joint[-1]["lr"].items():
+        assert polish[0]["lr"][k] == pytest.approx(0.25 * lr)
+    # off (0) is the fit without the phase: no polish rows, the same parameters as a fit that never had it
+    c = tmp_path / "c"
+    fit(tiny_sequence, c, _cfg(**{**over, "motion.polish_steps": 0}), torch.device("cpu"))
+    assert not [line for line in open(c / "log.jsonl") if '"phase": "polish"' in line]
+    assert any(not torch.equal(_final_params(a)[k], _final_params(c)[k]) for k in _final_params(a))
+
+    def interrupting(self, frames):
+        if self.phase == "polish" and self.step == 2:
+            self.request_stop()
+        return orig_losses(self, frames)
+
+    monkeypatch.setattr(Fitter, "motion_losses", interrupting)
+    with pytest.raises(FitInterrupted, match="polish step 3"):
+        fit(tiny_sequence, b, cfg, torch.device("cpu"))
+    monkeypatch.setattr(Fitter, "motion_losses", orig_losses)
+    fit(tiny_sequence, b, cfg, torch.device("cpu"), resume=True)
+    pa, pb = _final_params(a), _final_params(b)
+    for k in pa:
+        torch.testing.assert_close(pb[k], pa[k], rtol=0, atol=1e-6, msg=f"resume in the polish differs in {k}")
+
+
 def test_resume_refuses_a_checkpoint_of_another_sequence(tiny_sequence, tmp_path):
     from s3o_warp.synth import make_sequence
 
@@ -400,6 +453,12 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
     with pytest.raises(ConfigError, match="motion.resample_method"):
         Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["motion.resample_method=manifold"]),
                tmp_path, torch.device("cpu"))
+    with pytest.raises(ConfigError, match="motion.resample_max_lost"):
+        Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["motion.resample_max_lost=1.5"]),
+               tmp_path, torch.device("cpu"))
+    for bad in ("motion.polish_steps=-1", "motion.polish_lr_factor=0"):
+        with pytest.raises(ConfigError, match="polish"):
+            Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=[bad]), tmp_path, torch.device("cpu"))
     import importlib.util
 
     real_find_spec = importlib.util.find_spec
@@ -694,6 +753,34 @@ def test_even_resampling_in_the_fit_keeps_the_render_and_the_loss(tiny_sequence,
     sum(w * v for w, v in terms.values()).backward()
     f._step_window(frames)
     assert not torch.equal(v0, m.verts.detach())
+
+
+def test_a_refused_resampling_keeps_the_mesh_and_its_optimiser_state(tiny_sequence, tmp_path, monkeypatch):
+    """When even_resample gives the mesh back (it would lose more than motion.resample_max_lost), the fit keeps its
+    vertex parameter, the vertices' Adam state and the Laplacian reference, and logs the resampling as kept."""
+    import s3o_warp.resample as rs
+
+    cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
+    m = f.model
+    f.opt.zero_grad()
+    terms, _, _ = f.motion_losses(frames)
+    sum(w * v for w, v in terms.values()).backward()
+    f._step_window(frames)  # the vertices have Adam state now
+    seen = {}
+
+    def refuse(verts, faces, settings=None, attributes=None):
+        seen["max_lost"] = settings.max_lost
+        return verts.detach().clone(), faces.detach().clone(), attributes.detach().clone()
+
+    monkeypatch.setattr(rs, "even_resample", refuse)
+    f.cfg.motion.resample_max_lost = 0.02
+    verts, lap_ref, state = m.verts, f.lap_ref, {k: v.clone() for k, v in f.opt.state[m.verts].items()}
+    f.resample_mesh()
+    assert seen["max_lost"] == 0.02  # the fit's setting reaches the resampling
+    assert m.verts is verts and f.lap_ref is lap_ref
+    for k, v in state.items():
+        torch.testing.assert_close(f.opt.state[m.verts][k], v)
+    assert f.history[-1]["what"] == "resample" and f.history[-1]["kept"] is True
 
 
 def test_cli_fits_a_video_file_with_a_mask_folder(tiny_sequence, tmp_path):

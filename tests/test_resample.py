@@ -265,6 +265,33 @@ def test_even_resample_never_passes_its_vertex_cap(caplog):
     assert "raise resample.max_vertices_factor" in caplog.text
 
 
+def _ball_with_fin(thickness: float = 0.004):
+    """A ball with a flat fin thinner than any grid of a few hundred vertices (two overlapping closed surfaces)."""
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    fin = trimesh.creation.box(extents=(1.6, 1.2, thickness))
+    fin.apply_translation((0.9, 0.0, 0.0))
+    fin = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(fin.vertices, fin.faces, max_edge=0.06))
+    m = trimesh.util.concatenate([ball, fin])
+    return torch.tensor(m.vertices, dtype=torch.float32), torch.tensor(m.faces)
+
+
+def test_even_resample_that_would_lose_too_much_gives_the_mesh_back(caplog):
+    """A fin 0.004 thick is lost at a 600-vertex grid whatever the repair (about 6.5 % of the old vertices): over
+    max_lost the input comes back as it is, attributes too, with a warning; max_lost=1 returns that lossy attempt."""
+    verts, faces = _ball_with_fin()
+    attr = torch.randn(len(verts), 3)
+    s = ResampleSettings(target_vertices=600, max_lost=0.02)
+    with caplog.at_level("WARNING", logger="s3o_warp.resample"):
+        nv, nf, na = even_resample(verts, faces, s, attributes=attr)
+    assert "not used" in caplog.text and "resample.max_lost" in caplog.text
+    assert torch.equal(nv, verts) and torch.equal(nf, faces.to(torch.int64)) and torch.equal(na, attr)
+    assert nv.data_ptr() != verts.data_ptr()  # a copy: the caller may change it
+    lossy, lf, _ = even_resample(verts, faces, s.replace(max_lost=1.0))
+    assert len(lossy) <= 2 * 600 * (1 + s.vertex_tolerance) < len(verts)
+    far = _unsigned(lossy, lf, verts)  # the fin's far edge is gone
+    assert float((far > 0.1).float().mean()) > 0.02
+
+
 def _needle(radius: float = 0.03, length: float = 1.0):
     """One closed surface of revolution: a unit ball with a leg of this radius up the z axis; and the leg's tip."""
     theta = np.linspace(0.0, np.pi - np.arcsin(radius), 48)  # polar angle from the south pole to the leg
@@ -369,6 +396,8 @@ def test_resample_settings_validation():
         ResampleSettings(method="manifold")
     with pytest.raises(ConfigError, match="resample.isotropic_iterations"):
         ResampleSettings(isotropic_iterations=0)
+    with pytest.raises(ConfigError, match="resample.max_lost"):
+        ResampleSettings(max_lost=-0.1)
     with pytest.raises(ConfigError, match="resample.bogus is not a setting"):
         ResampleSettings().replace(bogus=1)
     assert ResampleSettings().replace(trials=2).trials == 2
