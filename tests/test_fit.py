@@ -175,6 +175,20 @@ def _final_params(run):
     return st["model"]
 
 
+def _interrupt_resume_and_compare(seq, a, b, cfg, monkeypatch, interrupting, where: str) -> None:
+    """Fit into ``b`` with ``interrupting`` as the motion losses (it asks for a stop), resume, and compare the final
+    parameters with the uninterrupted fit in ``a``; ``where``: what the interrupt's message names."""
+    orig = Fitter.motion_losses
+    monkeypatch.setattr(Fitter, "motion_losses", interrupting)
+    with pytest.raises(FitInterrupted, match=where):
+        fit(seq, b, cfg, torch.device("cpu"))
+    monkeypatch.setattr(Fitter, "motion_losses", orig)
+    fit(seq, b, cfg, torch.device("cpu"), resume=True)
+    pa, pb = _final_params(a), _final_params(b)
+    for k in pa:
+        torch.testing.assert_close(pb[k], pa[k], rtol=0, atol=1e-6, msg=f"resume ({where}) differs in {k}")
+
+
 def test_resume_after_interrupt_matches_uninterrupted(tiny_sequence, tmp_path, monkeypatch):
     cfg = _cfg(**{"coarse.steps": 6, "motion.warmup_steps": 6, "motion.steps": 8})
     a, b = tmp_path / "a", tmp_path / "b"
@@ -189,15 +203,7 @@ def test_resume_after_interrupt_matches_uninterrupted(tiny_sequence, tmp_path, m
             self.request_stop()
         return orig(self, frames)
 
-    monkeypatch.setattr(Fitter, "motion_losses", interrupting)
-    with pytest.raises(FitInterrupted):
-        fit(tiny_sequence, b, cfg, torch.device("cpu"))
-    monkeypatch.setattr(Fitter, "motion_losses", orig)
-    fit(tiny_sequence, b, cfg, torch.device("cpu"), resume=True)
-
-    pa, pb = _final_params(a), _final_params(b)
-    for k in pa:
-        torch.testing.assert_close(pb[k], pa[k], rtol=0, atol=1e-6, msg=f"resume differs in {k}")
+    _interrupt_resume_and_compare(tiny_sequence, a, b, cfg, monkeypatch, interrupting, "stopped at joint step")
 
 
 def test_same_seed_repeats_bit_for_bit_on_threads(tiny_sequence, tmp_path):
@@ -264,14 +270,7 @@ def test_polish_steps_settle_on_the_final_skeleton_slower_and_resume(tiny_sequen
             self.request_stop()
         return orig_losses(self, frames)
 
-    monkeypatch.setattr(Fitter, "motion_losses", interrupting)
-    with pytest.raises(FitInterrupted, match="polish step 3"):
-        fit(tiny_sequence, b, cfg, torch.device("cpu"))
-    monkeypatch.setattr(Fitter, "motion_losses", orig_losses)
-    fit(tiny_sequence, b, cfg, torch.device("cpu"), resume=True)
-    pa, pb = _final_params(a), _final_params(b)
-    for k in pa:
-        torch.testing.assert_close(pb[k], pa[k], rtol=0, atol=1e-6, msg=f"resume in the polish differs in {k}")
+    _interrupt_resume_and_compare(tiny_sequence, a, b, cfg, monkeypatch, interrupting, "polish step 3")
 
 
 def test_resume_refuses_a_checkpoint_of_another_sequence(tiny_sequence, tmp_path):
