@@ -105,8 +105,8 @@ class ResampleSettings(SettingsReplace):
     max_lost: float = 0.05
     """A result that still leaves more than this fraction of the old vertices off the new surface after every
     repair is not used: the input mesh comes back as it is, with a warning (1 = always use the best attempt). A
-    fitted DAVIS cow whose surface had folded through itself (41 % of its vertices with the inside on the wrong
-    side) would lose 26-49 % at the vertex cap; the synthetic Fox and horse lose 0.2-4.1 % at their worst."""
+    fitted DAVIS cow whose surface is folded or crumpled finer than the grid would lose 26-49 % at the vertex cap;
+    the synthetic Fox and horse lose 0.2-4.1 % at their worst."""
     isotropic_iterations: int = 6
     """method=isotropic: remeshing passes per trial."""
     isotropic_surface_distance: float = 0.2
