@@ -440,35 +440,37 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
     for side in (right, left):  # consecutive stages move by the stride (the last may be shorter, to reach the end)
         gaps = np.abs(np.diff([s0] + side))
         assert (gaps[:-1] == step).all() and 0 < gaps[-1] <= step if len(gaps) else True
-    with pytest.raises(ConfigError, match="merge_quantile"):
-        Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["skeleton.merge_quantile=1"]), tmp_path,
-               torch.device("cpu"))
-    with pytest.raises(ConfigError, match="sweep_stride"):
-        Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["motion.sweep_stride=-1"]), tmp_path,
-               torch.device("cpu"))
-    with pytest.raises(ConfigError, match="min_frames_fraction"):
-        Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["skeleton.min_frames_fraction=1.5"]),
-               tmp_path, torch.device("cpu"))
-    with pytest.raises(ConfigError, match="motion.resample_method"):
-        Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["motion.resample_method=manifold"]),
-               tmp_path, torch.device("cpu"))
-    with pytest.raises(ConfigError, match="motion.resample_max_lost"):
-        Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["motion.resample_max_lost=1.5"]),
-               tmp_path, torch.device("cpu"))
-    for bad in ("motion.polish_steps=-1", "motion.polish_lr_factor=0"):
-        with pytest.raises(ConfigError, match="polish"):
-            Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=[bad]), tmp_path, torch.device("cpu"))
+
+
+@pytest.mark.parametrize("bad, names", [
+    ("skeleton.merge_quantile=1", "merge_quantile"),
+    ("motion.sweep_stride=-1", "sweep_stride"),
+    ("skeleton.min_frames_fraction=1.5", "min_frames_fraction"),
+    ("motion.resample_method=manifold", "motion.resample_method"),
+    ("motion.resample_max_lost=1.5", "motion.resample_max_lost"),
+    ("motion.polish_steps=-1", "motion.polish_steps"),
+    ("motion.polish_lr_factor=0", "motion.polish_lr_factor"),
+    ("skeleton.motion_frame=image", "motion_frame"),
+    ("skeleton.still_flow=0", "still_flow"),
+])
+def test_fitter_refuses_a_bad_setting_before_any_work(tiny_sequence, tmp_path, bad, names):
+    cfg = _cfg(**{"coarse.steps": 2})
+    data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
+    coarse = coarse_model(data, cfg)
+    with pytest.raises(ConfigError, match=names):
+        Fitter(data, coarse, make_config("smoke", overrides=[bad]), tmp_path, torch.device("cpu"))
+
+
+def test_isotropic_resampling_without_pymeshlab_is_refused_before_the_fit(tiny_sequence, tmp_path, monkeypatch):
     import importlib.util
 
+    cfg = _cfg(**{"coarse.steps": 2})
+    data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     real_find_spec = importlib.util.find_spec
-    with pytest.MonkeyPatch.context() as mp:  # without pymeshlab, isotropic resampling is refused before the fit
-        mp.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "pymeshlab" else real_find_spec(name, *a))
-        with pytest.raises(ConfigError, match="needs pymeshlab"):
-            Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["motion.resample_method=isotropic"]),
-                   tmp_path, torch.device("cpu"))
-    for bad in ("skeleton.motion_frame=image", "skeleton.still_flow=0"):
-        with pytest.raises(ConfigError, match="motion_frame"):
-            Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=[bad]), tmp_path, torch.device("cpu"))
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "pymeshlab" else real_find_spec(name, *a))
+    with pytest.raises(ConfigError, match="needs pymeshlab"):
+        Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["motion.resample_method=isotropic"]),
+               tmp_path, torch.device("cpu"))
 
 
 def test_known_turn_rate_skips_the_scoring(tiny_sequence, tmp_path):
