@@ -1,7 +1,7 @@
 """The ``s3o-fit`` console script (same as ``python scripts/fit.py``).
 
     s3o-fit [SEQUENCE] [--device cpu|cuda[:N]] [--out RUN_DIR] [--config FILE] [--preset NAME]
-            [--seed N] [--resume] [--set section.key=value ...]
+            [--seed N] [--resume] [--branch-from RUN_DIR] [--set section.key=value ...]
 
 With no SEQUENCE it renders the built-in procedural quadruped into ``RUN_DIR/sequence`` and fits it.
 Bad input ends with one line on stderr (exit code 2), never a traceback.
@@ -33,6 +33,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default="default", choices=list(PRESETS), help="; ".join(f"{k}: {v[0]}" for k, v in PRESETS.items()))
     p.add_argument("--seed", type=int, default=None, help="seed for every random choice")
     p.add_argument("--resume", action="store_true", help="continue from the last checkpoint in the run directory")
+    p.add_argument("--branch-from", default=None, metavar="RUN_DIR",
+                   help="start from that run's state just before its first merge (its checkpoints/branch.pt): the same "
+                        "sequence and settings but another skeleton.t_o, e.g. --set skeleton.t_o=0.90, at a fraction of a fit")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override one setting, e.g. motion.steps=300")
     p.add_argument("--object-id", type=int, default=None, help="palette index of the object in multi-object masks")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -81,7 +84,8 @@ def _run(args) -> int:
         if not seq.exists():
             raise InputError(f"sequence folder {seq} does not exist; pass a folder with images/ and masks/")
         out = Path(args.out or Path("runs") / (args.name or seq.stem))
-    metrics = fit(seq, out, cfg, device, resume=args.resume, masks=args.masks, name=args.name)
+    metrics = fit(seq, out, cfg, device, resume=args.resume, masks=args.masks, name=args.name,
+                  branch_from=args.branch_from)
     log.info("run directory: %s", out.resolve())
     iou = (metrics.get("mask_iou") or {}).get("mean")
     pck = (metrics.get("pck_t") or {}).get("pck")

@@ -337,6 +337,9 @@ class OutputConfig:
     """How many checkpoints to keep."""
     render_video: bool = True
     """Write renders/ (overlay video, loss plot)."""
+    branch_checkpoint: bool = True
+    """Keep ``checkpoints/branch.pt``, the state just before the first M-step that reads skeleton.t_o (after epoch
+    e1 + 1 of the joint phase), so ``--branch-from RUN`` fits the same sequence at another t_o from there."""
 
 
 @dataclass

@@ -32,6 +32,9 @@ from s3o_warp.model import ModelInit, S3OModel
 log = logging.getLogger(__name__)
 
 CHECKPOINT_VERSION = 2
+BRANCH_CHECKPOINT = "branch.pt"  # in <run>/checkpoints: the state before the first M-step that reads t_o
+BRANCH_LOG = "branch.log.jsonl"
+BRANCH_MAY_DIFFER = ("skeleton.t_o",)  # the settings a branched fit may change (and output.*, preset: no effect on the fit)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -358,6 +361,7 @@ class Fitter:
         self.opt = self._make_optimizer()
         self._stop = False
         self._bad = 0
+        self._pending_m_step = False  # a branch checkpoint was loaded: its M-step runs before the next step
         self._good = None
         from s3o_warp.mstep import SkeletonState, refresh_joints, virtual_bones_init
 
@@ -678,6 +682,9 @@ class Fitter:
                                                          or self.cfg.motion.turn_rate is not None):
                 self.select_hypothesis()
             bar = tqdm(total=n, initial=self.step, desc=f"{phase:>6}", dynamic_ncols=True, leave=True)
+            if self._pending_m_step:  # branched from another run's branch checkpoint: its M-step, with this t_o
+                self._pending_m_step = False
+                self._m_step(n)
             while self.step < n:
                 self.opt.zero_grad(set_to_none=True)
                 frames = None
@@ -721,6 +728,8 @@ class Fitter:
                     if self.cfg.motion.resolve_crossings and self.cfg.motion.crossing_recheck \
                             and self.step == self.steps_per_epoch(n):  # the lift's bones, before any M-step
                         self.resolve_crossings()
+                    if self.cfg.output.branch_checkpoint and self.is_branch_point(n):
+                        self.save_branch_checkpoint()
                     self._m_step(n)
                 if self._stop:
                     bar.close()
@@ -944,6 +953,12 @@ class Fitter:
         spe = self.steps_per_epoch(n)
         return self.step % spe == 0 and self.step < n
 
+    def is_branch_point(self, n: int) -> bool:
+        """At a joint-phase epoch end: is the M-step about to run the first that reads ``skeleton.t_o`` (the first
+        merge, after epoch e1 + 1)? Everything before it is the same for every t_o."""
+        sc = self.cfg.skeleton
+        return sc.method == "s3o" and self.step // self.steps_per_epoch(n) - 1 == sc.e1 + 1
+
     def _m_step(self, n: int) -> None:
         from s3o_warp.mstep import m_step
 
@@ -1007,6 +1022,8 @@ class Fitter:
             "lap_ref": self.lap_ref,
             "torch_rng": torch.get_rng_state(),
             "config": to_dict(self.cfg),
+            "seconds": time.perf_counter() - self.t0,
+            "pending_m_step": False,
         }
 
     def save_checkpoint(self) -> Path:
@@ -1018,6 +1035,23 @@ class Fitter:
         kept = sorted(ck.glob("step-*.pt"), key=lambda p: p.stat().st_mtime)
         for old in kept[: -self.cfg.output.keep_checkpoints]:
             old.unlink(missing_ok=True)
+        return path
+
+    def save_branch_checkpoint(self) -> Path:
+        """``checkpoints/branch.pt``: the state just before the first M-step that reads ``skeleton.t_o``, with that
+        M-step pending, and ``checkpoints/branch.log.jsonl`` (the log up to here); ``fit(..., branch_from=run)``
+        continues another t_o from it (:func:`fit`)."""
+        ck = self.run_dir / "checkpoints"
+        ck.mkdir(parents=True, exist_ok=True)
+        st = self.state()
+        st["pending_m_step"] = True
+        path = ck / BRANCH_CHECKPOINT
+        _atomic_save(st, path)
+        log_copy = ck / BRANCH_LOG
+        tmp = log_copy.with_name(log_copy.name + ".tmp")
+        tmp.write_bytes(self.log_file.read_bytes() if self.log_file.exists() else b"")
+        os.replace(tmp, log_copy)
+        log.info("branch checkpoint before the first merge (joint step %d): %s", self.step, path)
         return path
 
     def _resize_bones(self, B: int) -> None:
@@ -1050,6 +1084,9 @@ class Fitter:
         if sm["verts"].shape != self.model.verts.shape or sm["faces"].shape != self.model.faces.shape:
             self._set_mesh(sm["verts"], sm["faces"], sm["color_logits"])  # resampled mesh: values loaded below
         self.model.load_state_dict(st["model"])
+        from s3o_warp.kernels.regularisers import mesh_edges
+
+        self.edges = mesh_edges(self.model.faces).to(self.device)
         from s3o_warp.mstep import SkeletonState
 
         self.skel = SkeletonState.from_dict(st["skeleton"])
@@ -1060,6 +1097,10 @@ class Fitter:
             self.opt.load_state_dict(st["optimizer"])
         self.gen.set_state(st["generator"])
         torch.set_rng_state(st["torch_rng"])
+        self._pending_m_step = bool(st.get("pending_m_step", False))
+        self.t0 = time.perf_counter() - float(st.get("seconds", 0.0))  # log seconds count on from the checkpoint
+        if self.log_file.exists():  # the log so far (the loss plot and the metrics' seconds cover the whole fit)
+            self.history = [json.loads(line) for line in self.log_file.read_text().splitlines() if line.strip()]
 
 
 def latest_checkpoint(run_dir: Path) -> Path | None:
@@ -1104,14 +1145,22 @@ def _check_writable(out_dir: Path) -> None:
         raise InputError(f"run directory {out_dir} is not writable ({p} is not a writable folder); choose another --out")
 
 
-def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool = False, masks=None, name=None) -> dict:
+def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool = False, masks=None, name=None,
+        branch_from=None) -> dict:
     """Fit one sequence and write the run directory; returns the metrics dict.
 
     ``sequence_dir`` is a sequence folder, a DAVIS root (with ``name``), a DAVIS sequence folder, or a
     video file / frame folder with a separate ``masks`` folder (see ``s3o_warp.video.open_sequence``).
+    ``branch_from``: a finished or running fit of the same sequence whose settings differ from ``cfg`` only in
+    ``skeleton.t_o`` (:data:`BRANCH_MAY_DIFFER`); the fit starts from its ``checkpoints/branch.pt`` (the state just
+    before the first merge) and its cached crops and flow, so a t_o study pays for the shared part once (the rest of the run directory is this fit's own). With
+    ``resume`` a checkpoint of ``out_dir`` itself comes first.
     """
     out_dir = Path(out_dir)
     _check_writable(out_dir)
+    branch = _branch_checkpoint(Path(branch_from), out_dir, cfg) if branch_from is not None else None
+    if branch is not None:
+        _link_cache(Path(branch_from) / "cache", out_dir / "cache")
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
     data = prepare_data(Path(sequence_dir), cfg, out_dir, device, masks=masks, name=name)  # validates input first
@@ -1124,8 +1173,14 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
         coarse_res = coarse_model(data, cfg)
         fitter = Fitter(data, coarse_res, cfg, out_dir, device)
         ck = latest_checkpoint(out_dir) if resume else None
-        if resume and ck is None:
+        if resume and ck is None and branch is None:
             log.warning("--resume: no checkpoint in %s, starting from the beginning", out_dir / "checkpoints")
+        if ck is None and branch is not None:
+            ck = branch
+            log_copy = branch.with_name(BRANCH_LOG)
+            tmp = out_dir / "log.jsonl.tmp"
+            tmp.write_bytes(log_copy.read_bytes() if log_copy.is_file() else b"")
+            os.replace(tmp, out_dir / "log.jsonl")
         if ck is not None:
             log.info("resuming from %s", ck)
             fitter.load_checkpoint(ck)
@@ -1135,6 +1190,57 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
             with _stop_on_signals(fitter):
                 fitter.run()
         return write_outputs(fitter)
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _branch_checkpoint(parent: Path, out_dir: Path, cfg: Config) -> Path:
+    """The branch checkpoint of run ``parent`` for a fit with ``cfg`` into ``out_dir``; InputError when it is
+    missing or the settings differ in more than :data:`BRANCH_MAY_DIFFER`."""
+    ck = parent / "checkpoints" / BRANCH_CHECKPOINT
+    if parent.resolve() == out_dir.resolve():
+        raise InputError(f"--branch-from {parent}: that is the run directory itself; choose another --out")
+    if not ck.is_file():
+        raise InputError(f"--branch-from {parent}: no {ck.relative_to(parent)} there (it is written just before the "
+                         "first merge of a fit with skeleton.method=s3o, skeleton.epochs >= skeleton.e1 + 3 and "
+                         "output.branch_checkpoint=true); fit that run first or drop --branch-from")
+    theirs = _flat(torch.load(ck, map_location="cpu", weights_only=False)["config"])
+    ours = _flat(to_dict(cfg))
+    free = set(BRANCH_MAY_DIFFER) | {"preset"}
+    differ = sorted(k for k in set(theirs) | set(ours)
+                    if k not in free and not k.startswith("output.") and theirs.get(k) != ours.get(k))
+    if differ:
+        shown = ", ".join(f"{k} ({theirs.get(k)!r} there, {ours.get(k)!r} here)" for k in differ[:4])
+        raise InputError(f"--branch-from {parent}: its settings differ in {shown}{' ...' if len(differ) > 4 else ''}; "
+                         f"only {', '.join(BRANCH_MAY_DIFFER)} may differ, fit afresh for the others")
+    return ck
+
+
+def _link_cache(src: Path, dst: Path) -> None:
+    """The parent run's cached flow for a branched fit: hard links (a copy across file systems). The flow files
+    are written once under a temporary name and renamed, so neither run ever writes into the other's; the crops'
+    memory map (long sequences) is rewritten by each run and not shared."""
+    import shutil
+
+    if not src.is_dir():
+        return
+    for f in src.glob("flow_*.npy"):
+        t = dst / f.name
+        if t.exists():
+            continue
+        t.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(f, t)
+        except OSError:
+            shutil.copy2(f, t)
 
 
 @contextlib.contextmanager

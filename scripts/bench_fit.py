@@ -98,9 +98,13 @@ def main(argv=None) -> int:
     ap.add_argument("--set", dest="overrides", action="append", default=[])
     ap.add_argument("--out-dir", default=str(REPO / "runs" / "bench"))
     ap.add_argument("--t-o", nargs="+", type=float, default=None,
-                    help="skeleton granularity study: fit once per merge threshold t_o (e.g. 0.99 0.95 0.90) and put the "
+                    help="skeleton granularity study: fit once per merge threshold t_o (e.g. 0.99 0.95 0.90; the later ones branched "
+                         "from the first's state before its first merge, see --no-branch) and put the "
                          "three dominant-bone pictures side by side in renders/skeleton_t_o-CASE-DEVICE.png of the "
                          "repository (and renders/skeleton_t_o.png of the last run)")
+    ap.add_argument("--no-branch", action="store_true",
+                    help="with --t-o: a whole fit per t_o (default: the first t_o's fit, the others branched from its state "
+                         "just before the first merge, fit(..., branch_from=...), which gives the same result)")
     ap.add_argument("--figure-tag", default="",
                     help="with --t-o: name the repository's figure renders/skeleton_t_o-CASE-TAG-DEVICE.png, so a study "
                          "with other settings (e.g. --set skeleton.motion_frame=body --figure-tag body) does not "
@@ -129,21 +133,26 @@ def main(argv=None) -> int:
         if seq is None:
             continue
         variants = [(m, None) for m in args.methods] if not args.t_o else [("s3o", t) for t in args.t_o]
-        pictures = []
+        pictures, trunk = [], {}
         for method, t_o in variants:
             for seed in args.seeds:
                 extra = [f"skeleton.t_o={t_o}"] if t_o is not None else []
                 cfg = make_config(args.preset, overrides=[f"skeleton.method={method}"] + extra + args.overrides, seed=seed)
                 run = work / "runs" / (f"{case}-{method}-{seed}" + (f"-t_o{t_o}" if t_o is not None else ""))
+                parent = trunk.get(seed) if t_o is not None and not args.no_branch else None
                 t0 = time.perf_counter()
-                metrics = fit(seq, run, cfg, device)
+                metrics = fit(seq, run, cfg, device, branch_from=parent)
                 wall = time.perf_counter() - t0
+                if t_o is not None and parent is None and (run / "checkpoints" / "branch.pt").is_file():
+                    trunk[seed] = run
                 if t_o is not None:
                     pictures.append((t_o, run / "renders" / "bones.png"))
                 entry = {
                     "command": " ".join(["python"] + sys.argv),
                     "case": case, "method": method, "seed": seed, "preset": args.preset, "overrides": args.overrides + extra,
                     "wall_seconds": round(wall, 1), "phase_seconds": phase_times(run),
+                    **({"branched_from": parent.name, "note": "wall_seconds: this fit's own (after the branch); "
+                        "phase_seconds: the shared part's from the parent's log"} if parent is not None else {}),
                     "iou": (metrics.get("mask_iou") or {}).get("mean"),
                     "pck_t": (metrics.get("pck_t") or {}).get("pck"),
                     "chamfer": (metrics.get("shape_3d") or {}).get("chamfer"),

@@ -273,6 +273,59 @@ def test_polish_steps_settle_on_the_final_skeleton_slower_and_resume(tiny_sequen
     _interrupt_resume_and_compare(tiny_sequence, a, b, cfg, monkeypatch, interrupting, "polish step 3")
 
 
+def test_a_fit_branched_at_another_t_o_ends_where_a_fresh_fit_at_it_ends(tiny_sequence, tmp_path, monkeypatch):
+    """``fit(..., branch_from=run)``: a fit at another t_o started from ``run``'s branch checkpoint (the state just
+    before its first merge, that M-step pending) gives the parameters of a fresh fit at that t_o, runs only the
+    steps after the branch, and its log counts on from the branch."""
+    over = {"coarse.steps": 4, "motion.warmup_steps": 4, "motion.steps": 10, "skeleton.epochs": 5, "skeleton.e1": 1,
+            "motion.log_every": 1}
+    a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
+    calls = {"n": 0}
+    orig = Fitter.motion_losses
+
+    def counting(self, frames):
+        calls["n"] += 1
+        return orig(self, frames)
+
+    monkeypatch.setattr(Fitter, "motion_losses", counting)
+    fit(tiny_sequence, a, _cfg(**over, **{"skeleton.t_o": 0.999}), torch.device("cpu"))
+    assert (a / "checkpoints" / "branch.pt").is_file()
+    calls["n"] = 0
+    fit(tiny_sequence, b, _cfg(**over, **{"skeleton.t_o": -1.0}), torch.device("cpu"))
+    fresh = calls["n"]
+    pa, pb = _final_params(a), _final_params(b)
+    assert any(pa[k].shape != pb[k].shape or not torch.equal(pa[k], pb[k]) for k in pa)  # t_o acts after the branch
+    calls["n"] = 0
+    fit(tiny_sequence, c, _cfg(**over, **{"skeleton.t_o": -1.0}), torch.device("cpu"), branch_from=a)
+    # 10 joint steps in 5 epochs of 2: the first merge follows epoch e1 + 1 = 2, at joint step 6; 4 steps remain
+    assert calls["n"] == 4 < fresh
+    pc = _final_params(c)
+    for k in pb:
+        torch.testing.assert_close(pc[k], pb[k], rtol=0, atol=1e-6, msg=f"branched fit differs in {k}")
+    rows = [json.loads(line) for line in open(c / "log.jsonl")]
+    joint = [r["step"] for r in rows if r["phase"] == "joint" and "lr" in r]
+    assert joint == list(range(1, 11)) and rows[0]["phase"] == "eval"  # a's log up to the branch, then c's own
+    secs = [r["seconds"] for r in rows]
+    assert secs == sorted(secs)
+    assert json.loads((c / "skeleton.json").read_text())["bones"] == json.loads((b / "skeleton.json").read_text())["bones"]
+
+
+def test_a_branch_refuses_other_settings_and_a_run_without_its_checkpoint(tiny_sequence, tmp_path):
+    over = {"coarse.steps": 2, "motion.warmup_steps": 2, "motion.steps": 8, "skeleton.epochs": 4, "skeleton.e1": 1}
+    a = tmp_path / "a"
+    fit(tiny_sequence, a, _cfg(**over), torch.device("cpu"))
+    with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o may differ"):
+        fit(tiny_sequence, tmp_path / "b", _cfg(**over, **{"motion.lr_bones": 0.123}), torch.device("cpu"), branch_from=a)
+    assert not (tmp_path / "b").exists()  # refused before any work
+    with pytest.raises(InputError, match="that is the run directory itself"):
+        fit(tiny_sequence, a, _cfg(**over), torch.device("cpu"), branch_from=a)
+    short = tmp_path / "short"  # 3 epochs, e1 1: the last M-step is the upsampling, t_o is never read
+    fit(tiny_sequence, short, _cfg(**{**over, "skeleton.epochs": 3}), torch.device("cpu"))
+    assert not (short / "checkpoints" / "branch.pt").exists()
+    with pytest.raises(InputError, match=r"no checkpoints/branch.pt there"):
+        fit(tiny_sequence, tmp_path / "d", _cfg(**{**over, "skeleton.epochs": 3}), torch.device("cpu"), branch_from=short)
+
+
 def test_resume_refuses_a_checkpoint_of_another_sequence(tiny_sequence, tmp_path):
     from s3o_warp.synth import make_sequence
 

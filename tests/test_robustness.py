@@ -87,6 +87,11 @@ def test_cli_bad_input_is_one_line_and_exit_code_2(tmp_path, capsys):
     assert len(err) == 1 and "'motion.steps' must be int" in err[0]
     assert not (tmp_path / "r2").exists() and not (tmp_path / "r3").exists()
 
+    assert cli_main([str(seq_dir), "--out", str(tmp_path / "r5"), "--branch-from", str(tmp_path / "nofit")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--branch-from" in err[0] and "checkpoints/branch.pt" in err[0]
+    assert not (tmp_path / "r5").exists()
+
     empty = _write_seq(tmp_path / "seq_empty", [_blob(), np.zeros((48, 64), bool)])
     assert cli_main([str(empty), "--out", str(tmp_path / "r4")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
