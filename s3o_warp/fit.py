@@ -297,6 +297,13 @@ def _atomic_save(obj, path: Path) -> None:
     os.replace(tmp, path)
 
 
+def _atomic_copy(src: Path, dst: Path) -> None:
+    """``dst`` becomes a copy of ``src`` (empty when ``src`` is missing), written to a temporary name, then renamed."""
+    tmp = dst.with_name(dst.name + ".tmp")
+    tmp.write_bytes(src.read_bytes() if src.is_file() else b"")
+    os.replace(tmp, dst)
+
+
 class Fitter:
     """Runs the phases with one Adam optimiser per phase, logging and atomic checkpoints."""
 
@@ -1047,10 +1054,7 @@ class Fitter:
         st["pending_m_step"] = True
         path = ck / BRANCH_CHECKPOINT
         _atomic_save(st, path)
-        log_copy = ck / BRANCH_LOG
-        tmp = log_copy.with_name(log_copy.name + ".tmp")
-        tmp.write_bytes(self.log_file.read_bytes() if self.log_file.exists() else b"")
-        os.replace(tmp, log_copy)
+        _atomic_copy(self.log_file, ck / BRANCH_LOG)
         log.info("branch checkpoint before the first merge (joint step %d): %s", self.step, path)
         return path
 
@@ -1153,7 +1157,7 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
     video file / frame folder with a separate ``masks`` folder (see ``s3o_warp.video.open_sequence``).
     ``branch_from``: a finished or running fit of the same sequence whose settings differ from ``cfg`` only in
     ``skeleton.t_o`` (:data:`BRANCH_MAY_DIFFER`); the fit starts from its ``checkpoints/branch.pt`` (the state just
-    before the first merge) and its cached crops and flow, so a t_o study pays for the shared part once (the rest of the run directory is this fit's own). With
+    before the first merge) and its cached flow, so a t_o study pays for the shared part once (the rest of the run directory is this fit's own). With
     ``resume`` a checkpoint of ``out_dir`` itself comes first.
     """
     out_dir = Path(out_dir)
@@ -1177,10 +1181,7 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
             log.warning("--resume: no checkpoint in %s, starting from the beginning", out_dir / "checkpoints")
         if ck is None and branch is not None:
             ck = branch
-            log_copy = branch.with_name(BRANCH_LOG)
-            tmp = out_dir / "log.jsonl.tmp"
-            tmp.write_bytes(log_copy.read_bytes() if log_copy.is_file() else b"")
-            os.replace(tmp, out_dir / "log.jsonl")
+            _atomic_copy(branch.with_name(BRANCH_LOG), out_dir / "log.jsonl")
         if ck is not None:
             log.info("resuming from %s", ck)
             fitter.load_checkpoint(ck)
