@@ -114,6 +114,10 @@ class MotionConfig:
     resample_max_lost: float = 0.05
     """A resampling that would leave more than this fraction of the old vertices off the new surface is not used;
     the mesh stays as it is until the next one (``resample.max_lost``)."""
+    resample_fallback: str = "isotropic"
+    """When a resampling by resample_method is not used (it would lose more than resample_max_lost), try this
+    method on the same mesh before keeping it: isotropic (pymeshlab; remeshes the surface itself, so a surface
+    crumpled finer than marching's grid survives), marching, or none."""
     hypothesis_root_only: bool = True
     """Score each hypothesis with only the root and camera free (the bones cannot absorb a wrong turn)."""
     hypothesis_score: str = "flow"

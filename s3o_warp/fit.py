@@ -344,12 +344,19 @@ class Fitter:
                               f"use the resampling), got {cfg.motion.resample_max_lost}")
         if cfg.motion.resample_method not in ("marching", "isotropic"):
             raise ConfigError(f"motion.resample_method must be 'marching' or 'isotropic', got {cfg.motion.resample_method!r}")
-        if cfg.motion.resample_method == "isotropic" and cfg.motion.resample_epochs > 0:
-            import importlib.util
+        if cfg.motion.resample_fallback not in ("none", "marching", "isotropic"):
+            raise ConfigError(f"motion.resample_fallback must be 'none', 'marching' or 'isotropic', got "
+                              f"{cfg.motion.resample_fallback!r}")
+        import importlib.util
 
-            if importlib.util.find_spec("pymeshlab") is None:  # say so now, not at the first resampling
+        self._has_meshlab = importlib.util.find_spec("pymeshlab") is not None
+        if cfg.motion.resample_epochs > 0 and not self._has_meshlab:  # say so now, not at the first resampling
+            if cfg.motion.resample_method == "isotropic":
                 raise ConfigError("motion.resample_method=isotropic needs pymeshlab: pip install pymeshlab (or "
                                   "pip install 's3o-warp[remesh]'), or set motion.resample_method=marching")
+            if cfg.motion.resample_fallback == "isotropic":
+                log.warning("motion.resample_fallback=isotropic needs pymeshlab, which is not installed: a refused "
+                            "resampling keeps the mesh (pip install pymeshlab, or set motion.resample_fallback=none)")
         if not 0 <= cfg.skeleton.min_frames_fraction <= 1:
             raise ConfigError(f"skeleton.min_frames_fraction must be in [0, 1] (a fraction of the frame pairs; 0 = "
                               f"skeleton.min_frames alone), got {cfg.skeleton.min_frames_fraction}")
@@ -984,14 +991,25 @@ class Fitter:
         m, mc = self.model, self.cfg.motion
         target = mc.resample_vertices or len(self.coarse.init.verts)
         n0 = m.verts.shape[0]
-        rs = ResampleSettings(target_vertices=int(target), method=mc.resample_method, max_lost=mc.resample_max_lost)
-        v, f, col = even_resample(m.verts.detach(), m.faces, rs, attributes=m.color_logits.detach())
-        kept = f.shape == m.faces.shape and torch.equal(f.to(m.faces.device), m.faces) and torch.equal(v, m.verts.detach())
+        methods = [mc.resample_method]
+        fb = mc.resample_fallback
+        if fb not in ("none", mc.resample_method) and (fb != "isotropic" or self._has_meshlab):
+            methods.append(fb)
+        for method in methods:
+            if method != mc.resample_method:
+                log.info("even resampling: trying motion.resample_fallback=%s on the same mesh", method)
+            rs = ResampleSettings(target_vertices=int(target), method=method, max_lost=mc.resample_max_lost)
+            v, f, col = even_resample(m.verts.detach(), m.faces, rs, attributes=m.color_logits.detach())
+            kept = f.shape == m.faces.shape and torch.equal(f.to(m.faces.device), m.faces) and torch.equal(v, m.verts.detach())
+            if not kept:
+                break
         if not kept:  # else: refused (resample.max_lost), the mesh and the optimiser's state stay as they are
             self._set_mesh(v, f, col)
         self._log({"phase": "eval", "step": self.step, "seconds": round(time.perf_counter() - self.t0, 3),
-                   "what": "resample", "vertices_before": int(n0), "vertices_after": int(v.shape[0]), "kept": kept})
-        log.info("even resampling: %d -> %d vertices%s", n0, v.shape[0], " (not used: the mesh is kept)" if kept else "")
+                   "what": "resample", "vertices_before": int(n0), "vertices_after": int(v.shape[0]), "kept": kept,
+                   "method": None if kept else method})
+        log.info("even resampling (%s): %d -> %d vertices%s", method, n0, v.shape[0],
+                 " (not used: the mesh is kept)" if kept else "")
 
     def _set_mesh(self, verts: torch.Tensor, faces: torch.Tensor, color_logits: torch.Tensor) -> None:
         """Swap the canonical mesh; the optimiser keeps every other parameter's state (and all learning rates)."""

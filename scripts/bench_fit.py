@@ -72,6 +72,13 @@ def prepare_case(case: str, work: Path) -> Path | None:
     raise SystemExit(f"bench_fit: unknown case {case}; choose from {', '.join(list(SYNTH) + list(DAVIS))}")
 
 
+def resamplings(run: Path) -> list[str]:
+    """Each even resampling of the fit: ``BEFORE->AFTER`` vertices and the method used, or ``refused``."""
+    recs = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines() if line.strip()]
+    return [f"{r['vertices_before']}->{r['vertices_after']} " + ("refused" if r["kept"] else r.get("method") or "used")
+            for r in recs if r.get("what") == "resample"]
+
+
 def phase_times(run: Path) -> dict:
     recs = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines() if line.strip()]
     recs = [r for r in recs if r["phase"] != "eval"]
@@ -159,6 +166,7 @@ def main(argv=None) -> int:
                     "fscore": (metrics.get("shape_3d") or {}).get("fscore"),
                     "skeleton": {k: v for k, v in (metrics.get("skeleton") or {}).items() if k != "per_frame"},
                     "bones": len(json.loads((run / "skeleton.json").read_text())["bones"]),
+                    "resamplings": resamplings(run),
                     "git_commit": header["git_commit"],  # the code this process loaded, not HEAD when the fit ends
                     "device_name": header["device_name"],
                 }

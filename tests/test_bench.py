@@ -52,3 +52,15 @@ def test_a_tagged_t_o_study_does_not_overwrite_the_sequences_figure():
     plain, tagged = bench_fit.figure_path("horse", "cpu"), bench_fit.figure_path("horse", "cpu", "body")
     assert plain.name == "skeleton_t_o-horse-cpu.png" and tagged.name == "skeleton_t_o-horse-body-cpu.png"
     assert plain.parent == tagged.parent == bench_fit.REPO / "renders"
+
+
+def test_a_rows_resamplings_say_which_were_used_and_how(tmp_path):
+    recs = [{"phase": "joint", "step": 1, "seconds": 1.0},
+            {"phase": "eval", "what": "resample", "vertices_before": 1200, "vertices_after": 1180, "kept": False,
+             "method": "marching"},
+            {"phase": "eval", "what": "resample", "vertices_before": 1180, "vertices_after": 1180, "kept": True,
+             "method": None},
+            {"phase": "eval", "what": "resample", "vertices_before": 1180, "vertices_after": 1210, "kept": False,
+             "method": "isotropic"}]
+    (tmp_path / "log.jsonl").write_text("\n".join(json.dumps(r) for r in recs) + "\n")
+    assert bench_fit.resamplings(tmp_path) == ["1200->1180 marching", "1180->1180 refused", "1180->1210 isotropic"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import logging
 
@@ -501,6 +502,7 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
     ("skeleton.min_frames_fraction=1.5", "min_frames_fraction"),
     ("motion.resample_method=manifold", "motion.resample_method"),
     ("motion.resample_max_lost=1.5", "motion.resample_max_lost"),
+    ("motion.resample_fallback=manifold", "motion.resample_fallback"),
     ("motion.polish_steps=-1", "motion.polish_steps"),
     ("motion.polish_lr_factor=0", "motion.polish_lr_factor"),
     ("skeleton.motion_frame=image", "motion_frame"),
@@ -820,21 +822,57 @@ def test_a_refused_resampling_keeps_the_mesh_and_its_optimiser_state(tiny_sequen
     terms, _, _ = f.motion_losses(frames)
     sum(w * v for w, v in terms.values()).backward()
     f._step_window(frames)  # the vertices have Adam state now
-    seen = {}
+    seen = []
 
     def refuse(verts, faces, settings=None, attributes=None):
-        seen["max_lost"] = settings.max_lost
+        seen.append((settings.method, settings.max_lost))
         return verts.detach().clone(), faces.detach().clone(), attributes.detach().clone()
 
     monkeypatch.setattr(rs, "even_resample", refuse)
+    monkeypatch.setattr(f, "_has_meshlab", True)
     f.cfg.motion.resample_max_lost = 0.02
     verts, lap_ref, state = m.verts, f.lap_ref, {k: v.clone() for k, v in f.opt.state[m.verts].items()}
     f.resample_mesh()
-    assert seen["max_lost"] == 0.02  # the fit's setting reaches the resampling
+    # the fit's setting reaches the resampling; refused by marching, the fallback is tried on the same mesh
+    assert seen == [("marching", 0.02), ("isotropic", 0.02)]
     assert m.verts is verts and f.lap_ref is lap_ref
     for k, v in state.items():
         torch.testing.assert_close(f.opt.state[m.verts][k], v)
-    assert f.history[-1]["what"] == "resample" and f.history[-1]["kept"] is True
+    assert f.history[-1]["what"] == "resample" and f.history[-1]["kept"] is True and f.history[-1]["method"] is None
+    seen.clear()
+    f.cfg.motion.resample_fallback = "none"
+    f.resample_mesh()
+    assert seen == [("marching", 0.02)]
+
+
+def test_a_resampling_refused_by_marching_is_done_by_the_fallback(tiny_sequence, tmp_path, monkeypatch):
+    """motion.resample_fallback: when marching would lose too much, the other method's result is used (and
+    logged); without pymeshlab the isotropic fallback is skipped, not an error."""
+    import s3o_warp.resample as rs
+
+    cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
+    m = f.model
+    real = rs.even_resample
+    seen = []
+
+    def marching_refuses(verts, faces, settings=None, attributes=None):
+        seen.append(settings.method)
+        if settings.method == "marching":
+            return verts.detach().clone(), faces.detach().clone(), attributes.detach().clone()
+        return real(verts, faces, dataclasses.replace(settings, method="marching", max_lost=1.0), attributes)
+
+    monkeypatch.setattr(rs, "even_resample", marching_refuses)
+    monkeypatch.setattr(f, "_has_meshlab", True)
+    verts = m.verts
+    f.resample_mesh()
+    assert seen == ["marching", "isotropic"]
+    assert m.verts is not verts and f.edges.max() < m.verts.shape[0]
+    assert f.history[-1]["kept"] is False and f.history[-1]["method"] == "isotropic"
+    seen.clear()
+    monkeypatch.setattr(f, "_has_meshlab", False)
+    verts = m.verts
+    f.resample_mesh()
+    assert seen == ["marching"] and m.verts is verts and f.history[-1]["kept"] is True
 
 
 def test_cli_fits_a_video_file_with_a_mask_folder(tiny_sequence, tmp_path):
