@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import copy
-import dataclasses
 import json
 import logging
 
@@ -850,6 +849,7 @@ def test_a_resampling_refused_by_marching_is_done_by_the_fallback(tiny_sequence,
     logged); without pymeshlab the isotropic fallback is skipped, not an error."""
     import s3o_warp.resample as rs
 
+    pytest.importorskip("pymeshlab")
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     m = f.model
     real = rs.even_resample
@@ -859,10 +859,9 @@ def test_a_resampling_refused_by_marching_is_done_by_the_fallback(tiny_sequence,
         seen.append(settings.method)
         if settings.method == "marching":
             return verts.detach().clone(), faces.detach().clone(), attributes.detach().clone()
-        return real(verts, faces, dataclasses.replace(settings, method="marching", max_lost=1.0), attributes)
+        return real(verts, faces, settings, attributes)
 
     monkeypatch.setattr(rs, "even_resample", marching_refuses)
-    monkeypatch.setattr(f, "_has_meshlab", True)
     verts = m.verts
     f.resample_mesh()
     assert seen == ["marching", "isotropic"]
