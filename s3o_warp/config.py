@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from s3o_warp.coarse_skeleton import CoarseSettings
+from s3o_warp.resample import ResampleSettings
 
 
 @dataclass
@@ -118,6 +119,10 @@ class MotionConfig:
     """When a resampling by resample_method is not used (it would lose more than resample_max_lost), try this
     method on the same mesh before keeping it: isotropic (pymeshlab; remeshes the surface itself, so a surface
     crumpled finer than marching's grid survives), marching, or none."""
+    resample: ResampleSettings = field(default_factory=ResampleSettings)
+    """Every other setting of the even resampling (``s3o_warp.resample.ResampleSettings``: grid, repair, vertex cap,
+    smoothing, isotropic passes). Its method, target_vertices and max_lost are set by resample_method,
+    resample_vertices and resample_max_lost above and must stay at their defaults here."""
     hypothesis_root_only: bool = True
     """Score each hypothesis with only the root and camera free (the bones cannot absorb a wrong turn)."""
     hypothesis_score: str = "flow"
@@ -454,8 +459,8 @@ def _coerce(key: str, current, value, annotation: str):
         if base.startswith("tuple"):
             if isinstance(value, str):
                 value = [v for v in value.strip("()[] ").split(",") if v.strip()]
-            n = base.count(",") + 1
-            if not isinstance(value, (list, tuple)) or len(value) != n:
+            n = None if "..." in base else base.count(",") + 1  # tuple[float, ...]: any length
+            if not isinstance(value, (list, tuple)) or (n is not None and len(value) != n):
                 raise ValueError
             kind = float if "float" in base else int
             return tuple(kind(v) for v in value)

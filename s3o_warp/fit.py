@@ -347,6 +347,7 @@ class Fitter:
         if cfg.motion.resample_fallback not in ("none", "marching", "isotropic"):
             raise ConfigError(f"motion.resample_fallback must be 'none', 'marching' or 'isotropic', got "
                               f"{cfg.motion.resample_fallback!r}")
+        self._resample_settings(cfg.motion.resample_method)  # a bad motion.resample.* fails now, not an epoch in
         import importlib.util
 
         self._has_meshlab = importlib.util.find_spec("pymeshlab") is not None
@@ -986,7 +987,7 @@ class Fitter:
     @torch.no_grad()
     def resample_mesh(self) -> None:
         """Even resampling (paper B): same surface, uniform vertices; colours carried, skinning follows the bones."""
-        from s3o_warp.resample import ResampleSettings, even_resample
+        from s3o_warp.resample import even_resample
 
         m, mc = self.model, self.cfg.motion
         target = mc.resample_vertices or len(self.coarse.init.verts)
@@ -998,7 +999,7 @@ class Fitter:
         for method in methods:
             if method != mc.resample_method:
                 log.info("even resampling: trying motion.resample_fallback=%s on the same mesh", method)
-            rs = ResampleSettings(target_vertices=int(target), method=method, max_lost=mc.resample_max_lost)
+            rs = self._resample_settings(method, int(target))
             v, f, col = even_resample(m.verts.detach(), m.faces, rs, attributes=m.color_logits.detach())
             kept = f.shape == m.faces.shape and torch.equal(f.to(m.faces.device), m.faces) and torch.equal(v, m.verts.detach())
             if not kept:
@@ -1010,6 +1011,18 @@ class Fitter:
                    "method": None if kept else method})
         log.info("even resampling (%s): %d -> %d vertices%s", method, n0, v.shape[0],
                  " (not used: the mesh is kept)" if kept else "")
+
+    def _resample_settings(self, method: str, target: int | None = None):
+        """``motion.resample`` with the method, target count and refusal limit the motion settings give it."""
+        from s3o_warp.resample import ResampleSettings
+
+        mc, default = self.cfg.motion, ResampleSettings()
+        for name, own in (("method", "resample_method"), ("target_vertices", "resample_vertices"),
+                          ("max_lost", "resample_max_lost")):
+            if getattr(mc.resample, name) != getattr(default, name):
+                raise ConfigError(f"motion.resample.{name} is set by motion.{own}: set that instead and leave "
+                                  f"motion.resample.{name} at {getattr(default, name)!r}")
+        return mc.resample.replace(method=method, target_vertices=target, max_lost=mc.resample_max_lost)
 
     def _set_mesh(self, verts: torch.Tensor, faces: torch.Tensor, color_logits: torch.Tensor) -> None:
         """Swap the canonical mesh; the optimiser keeps every other parameter's state (and all learning rates)."""
@@ -1233,6 +1246,8 @@ def _branch_checkpoint(parent: Path, out_dir: Path, cfg: Config) -> Path:
                          "output.branch_checkpoint=true); fit that run first or drop --branch-from")
     theirs = _flat(torch.load(ck, map_location="cpu", weights_only=False)["config"])
     ours = _flat(to_dict(cfg))
+    defaults = _flat(to_dict(Config()))  # a setting newer than the parent's run: it ran with the default
+    theirs = {**{k: v for k, v in defaults.items() if k not in theirs}, **theirs}
     free = set(BRANCH_MAY_DIFFER) | {"preset"}
     differ = sorted(k for k in set(theirs) | set(ours)
                     if k not in free and not k.startswith("output.") and theirs.get(k) != ours.get(k))

@@ -317,6 +317,16 @@ def test_a_branch_refuses_other_settings_and_a_run_without_its_checkpoint(tiny_s
     with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o may differ"):
         fit(tiny_sequence, tmp_path / "b", _cfg(**over, **{"motion.lr_bones": 0.123}), torch.device("cpu"), branch_from=a)
     assert not (tmp_path / "b").exists()  # refused before any work
+    # a run from before a setting existed ran with its default: that setting does not count as a difference
+    from s3o_warp.fit import _branch_checkpoint
+
+    ck = a / "checkpoints" / "branch.pt"
+    state = torch.load(ck, map_location="cpu", weights_only=False)
+    del state["config"]["motion"]["resample"]
+    torch.save(state, ck)
+    assert _branch_checkpoint(a, tmp_path / "e", _cfg(**over)) == ck
+    with pytest.raises(InputError, match=r"differ in motion.resample.trials \(4 there, 7 here\)"):
+        _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.resample.trials": 7}))
     with pytest.raises(InputError, match="that is the run directory itself"):
         fit(tiny_sequence, a, _cfg(**over), torch.device("cpu"), branch_from=a)
     short = tmp_path / "short"  # 3 epochs, e1 1: the last M-step is the upsampling, t_o is never read
@@ -502,6 +512,9 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
     ("motion.resample_method=manifold", "motion.resample_method"),
     ("motion.resample_max_lost=1.5", "motion.resample_max_lost"),
     ("motion.resample_fallback=manifold", "motion.resample_fallback"),
+    ("motion.resample.refine_step=2", "resample.refine_step"),
+    ("motion.resample.method=isotropic", "set by motion.resample_method"),
+    ("motion.resample.max_lost=0.5", "set by motion.resample_max_lost"),
     ("motion.polish_steps=-1", "motion.polish_steps"),
     ("motion.polish_lr_factor=0", "motion.polish_lr_factor"),
     ("skeleton.motion_frame=image", "motion_frame"),
@@ -824,16 +837,18 @@ def test_a_refused_resampling_keeps_the_mesh_and_its_optimiser_state(tiny_sequen
     seen = []
 
     def refuse(verts, faces, settings=None, attributes=None):
-        seen.append((settings.method, settings.max_lost))
+        seen.append((settings.method, settings.max_lost, settings.max_vertices_factor, settings.target_vertices))
         return verts.detach().clone(), faces.detach().clone(), attributes.detach().clone()
 
     monkeypatch.setattr(rs, "even_resample", refuse)
     monkeypatch.setattr(f, "_has_meshlab", True)
     f.cfg.motion.resample_max_lost = 0.02
+    f.cfg.motion.resample.max_vertices_factor = 1.5
     verts, lap_ref, state = m.verts, f.lap_ref, {k: v.clone() for k, v in f.opt.state[m.verts].items()}
     f.resample_mesh()
-    # the fit's setting reaches the resampling; refused by marching, the fallback is tried on the same mesh
-    assert seen == [("marching", 0.02), ("isotropic", 0.02)]
+    # the fit's settings reach the resampling; refused by marching, the fallback is tried on the same mesh
+    n = len(f.coarse.init.verts)
+    assert seen == [("marching", 0.02, 1.5, n), ("isotropic", 0.02, 1.5, n)]
     assert m.verts is verts and f.lap_ref is lap_ref
     for k, v in state.items():
         torch.testing.assert_close(f.opt.state[m.verts][k], v)
@@ -841,7 +856,7 @@ def test_a_refused_resampling_keeps_the_mesh_and_its_optimiser_state(tiny_sequen
     seen.clear()
     f.cfg.motion.resample_fallback = "none"
     f.resample_mesh()
-    assert seen == [("marching", 0.02)]
+    assert seen == [("marching", 0.02, 1.5, n)]
 
 
 def test_a_resampling_refused_by_marching_is_done_by_the_fallback(tiny_sequence, tmp_path, monkeypatch):
