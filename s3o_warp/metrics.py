@@ -918,8 +918,22 @@ def _point_polyline_distance(points: np.ndarray, poly: np.ndarray, along: bool =
     return dk[np.arange(len(points)), k], s
 
 
+def _distinct(points: np.ndarray, d: np.ndarray, min_separation: float) -> np.ndarray:
+    """Per point, its distance ``d`` to the chain, or inf when a nearer point lies within ``min_separation``
+    of it (a knot of coincident joints counts once, by its nearest member)."""
+    out = d.copy()
+    kept: list[int] = []
+    for j in np.argsort(d, kind="stable"):
+        if any(np.linalg.norm(points[j] - points[k]) < min_separation for k in kept):
+            out[j] = np.inf
+        else:
+            kept.append(int(j))
+    return out
+
+
 def chain_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, chain, diag: np.ndarray,
-                   sim: Similarity | None = None, tol: float = 0.05, min_joints: int = 2) -> dict:
+                   sim: Similarity | None = None, tol: float = 0.05, min_joints: int = 2,
+                   min_separation: float = 0.0) -> dict:
     """Is there a learned joint chain along one ground-truth joint chain (``chain``: joint indices, a polyline;
     one index: a point)? The test of :func:`limb_coverage` for any chain, for example a neck between two
     branchings. Returns ``median_pred_joints`` (within ``tol`` x the bbox diagonal), ``covered`` (``min_joints``
@@ -927,26 +941,30 @@ def chain_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, chain, diag: 
     fewer than ``min_joints`` predicted joints) and ``median_span``: per frame, how much of the chain's length
     lies between the first and the last of the joints within ``tol`` (their nearest points on it), the median
     over the frames. Two joints in a knot at the hip cover a leg with a span near 0; a hip and a knee, about
-    half of it."""
+    half of it. With ``min_separation`` (x the diagonal) > 0, joints that close to a nearer one count once per
+    frame, so a knot of coincident joints is one joint, not a chain."""
     pj = sim(pred_joints) if sim is not None else np.asarray(pred_joints, dtype=np.float64)
     gj = np.asarray(gt_joints, dtype=np.float64)
     T = gj.shape[0]
     ds = [_point_polyline_distance(pj[t], gj[t, list(chain)], along=True) for t in range(T)]
     d = np.stack([x[0] / diag[t] for t, x in enumerate(ds)])
+    if min_separation > 0:
+        d = np.stack([_distinct(pj[t], d[t], min_separation * diag[t]) for t in range(T)])
     pos = np.stack([x[1] for x in ds])
     near = d < tol
     counts = near.sum(1)
     span = np.where(near.any(1), np.where(near, pos, -np.inf).max(1) - np.where(near, pos, np.inf).min(1), 0.0)
     # the min_joints-th nearest joint per frame; covered iff it is < tol in ceil(T / 2) frames or more
     kth = np.sort(d, axis=1)[:, min_joints - 1] if d.shape[1] >= min_joints else None
+    need = None if kth is None else float(np.sort(kth)[int(np.ceil(T / 2)) - 1])
     return {"median_pred_joints": float(np.median(counts)), "covered": bool((counts >= min_joints).mean() >= 0.5),
-            "tol_needed": None if kth is None else float(np.sort(kth)[int(np.ceil(T / 2)) - 1]),
+            "tol_needed": need if need is None or np.isfinite(need) else None,
             "median_span": float(np.median(span))}
 
 
 def limb_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, gt_parents: np.ndarray, diag: np.ndarray,
                   sim: Similarity | None = None, names: list[str] | None = None, tol: float = 0.05,
-                  min_joints: int = 2, branch: bool = True) -> dict:
+                  min_joints: int = 2, branch: bool = True, min_separation: float = 0.0) -> dict:
     """Does every ground-truth limb have a learned joint chain along it?
 
     A limb (see :func:`gt_limbs`) counts as covered when, in at least half of the frames, ``min_joints``
@@ -955,15 +973,17 @@ def limb_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, gt_parents: np
     every ``tol`` above it; None with fewer than ``min_joints`` predicted joints) and the covered fraction.
     ``branch=False`` leaves the branching ancestor out of the polyline (the limb's own joints: a tail from its
     base, not from the pelvis), so a joint where the limb meets the body, or a neighbouring limb's, does not
-    count for it.
+    count for it. ``min_separation`` > 0: joints closer than that (x the diagonal) to a nearer one count once
+    (:func:`chain_coverage`), so a knot of coincident joints does not pass for a chain.
     """
     out = []
     for limb in gt_limbs(gt_parents, names):
         chain = limb["joints"] if branch else limb["joints"][1:]
-        c = chain_coverage(pred_joints, gt_joints, chain, diag, sim, tol, min_joints)
+        c = chain_coverage(pred_joints, gt_joints, chain, diag, sim, tol, min_joints, min_separation)
         out.append({"limb": limb["name"], "gt_joints": len(limb["joints"]), **c})
     n = len(out)
-    return {"limbs": out, "covered": sum(o["covered"] for o in out), "total": n, "tol": tol, "min_joints": min_joints}
+    return {"limbs": out, "covered": sum(o["covered"] for o in out), "total": n, "tol": tol, "min_joints": min_joints,
+            "branch": branch, "min_separation": min_separation}
 
 
 def limb_identity(pred_verts: np.ndarray, weights: np.ndarray, gt_joints: np.ndarray, gt_parents: np.ndarray,
@@ -1040,7 +1060,8 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
                  object_id: int | None = None, alpha: float = 0.2,
                  threshold_frame: Literal["reference", "target"] = "reference",
                  n_points: int = 5000, fscore_ratio: float = 0.02, icp_iters: int = 50, seed: int = 0,
-                 chunk: int = 8, device: str = "cpu", progress: bool = True, rasterizer=None) -> dict:
+                 chunk: int = 8, device: str = "cpu", progress: bool = True, rasterizer=None,
+                 chain_separation: float = 0.02) -> dict:
     """Score a run against a sequence: mask IoU, PCK-T, 3D shape and skeleton, whatever is available.
 
     Args:
@@ -1057,6 +1078,8 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
         fscore_ratio: F-score threshold as a fraction of the bbox diagonal.
         icp_iters: ICP iterations of the 3D alignment.
         seed: surface-sampling seed.
+        chain_separation: ``skeleton.limbs_distinct`` counts joints closer than this x the bbox diagonal to a
+            nearer one once (:func:`limb_coverage` with ``branch=False``); ``skeleton.limbs`` counts every joint.
         chunk: frames per render call.
         device: torch device of the renders.
         progress: tqdm bars.
@@ -1166,6 +1189,10 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
             if gt.joint_parents is not None and len(gt.joint_parents) == gt.joints.shape[1]:
                 result["skeleton"]["limbs"] = limb_coverage(pred.joints_cam[pi], gt.joints[gi], gt.joint_parents, diag,
                                                             sim, gt.joint_names)
+                # the stricter reading: the limb's own joints, a knot of coincident joints counted once
+                result["skeleton"]["limbs_distinct"] = limb_coverage(
+                    pred.joints_cam[pi], gt.joints[gi], gt.joint_parents, diag, sim, gt.joint_names, branch=False,
+                    min_separation=chain_separation)
         if gt.joints is not None and gt.joint_parents is not None and len(gt.joint_parents) == gt.joints.shape[1]:
             if pred.weights is not None:
                 result["limb_identity"] = limb_identity(pred.verts_cam[pi], pred.weights, gt.joints[gi],
@@ -1211,6 +1238,12 @@ def format_table(metrics: dict) -> str:
         m = metrics["skeleton"]
         rows.append(("joint dist / bbox diag", f(m["distance"], ".5f"),
                      f"GT {m['gt_joints']} deforming joints, predicted {m['pred_joints']}"))
+        for key, what in (("limbs", "limbs with a joint chain"), ("limbs_distinct", "... of distinct joints")):
+            if key in m:
+                rows.append((what, f"{m[key]['covered']}/{m[key]['total']}",
+                             f"{m[key]['min_joints']}+ joints within {100 * m[key]['tol']:g} % of the diagonal in half "
+                             "the frames" + ("" if key == "limbs" else
+                                             f", the limb's own chain, {100 * m[key]['min_separation']:g} % apart")))
     if "limb_identity" in metrics:
         m = metrics["limb_identity"]
         worst = max(m["limbs"], key=lambda o: o["swapped"], default=None)

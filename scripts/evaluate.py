@@ -35,6 +35,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="surface-sampling seed")
     ap.add_argument("--device", default="cpu", help="torch device of the renders (cpu, cuda:0)")
     ap.add_argument("--chunk", type=int, default=8, help="frames per render call")
+    ap.add_argument("--chain-separation", type=float, default=0.02,
+                    help="limbs of distinct joints: joints closer than this x the bbox diagonal count once")
     ap.add_argument("--out", help="where to write metrics.json (default: RUN_DIR/metrics.json)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
@@ -43,6 +45,7 @@ def main(argv=None) -> int:
             args.run, args.sequence, keypoints=args.keypoints, ground_truth=args.ground_truth, masks=args.masks,
             object_id=args.object_id, alpha=args.alpha, threshold_frame=args.threshold_frame,
             n_points=args.points, seed=args.seed, chunk=args.chunk, device=args.device,
+            chain_separation=args.chain_separation,
         )
         run = Path(args.run)
         out = Path(args.out) if args.out else (run if run.is_dir() else run.parent) / "metrics.json"

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import runpy
 import subprocess
 import sys
@@ -322,6 +323,9 @@ def test_ground_truth_scored_against_itself_is_perfect(scene):
     assert m["shape_3d"]["chamfer"] < 1e-6 and m["shape_3d"]["fscore"] == 1.0
     assert m["skeleton"]["distance"] < 1e-5
     assert (m["skeleton"]["gt_joints"], m["skeleton"]["pred_joints"]) == (3, 3)
+    for key in ("limbs", "limbs_distinct"):  # the ground truth's own joints are a chain along its limb
+        assert m["skeleton"][key]["covered"] == m["skeleton"][key]["total"] == 1, key
+    assert m["skeleton"]["limbs_distinct"]["branch"] is False and re.search(r"of distinct joints +1/1", M.format_table(m))
     assert [(o["limb"], o["bone"], o["kept"]) for o in m["limb_identity"]["limbs"]] == [("foot", 1, 1.0)]
     assert m["skipped"] == {}
     json.dumps(m)  # JSON-ready
@@ -573,6 +577,14 @@ def test_limb_coverage_on_a_hand_made_tree():
     knot = np.repeat(np.array([[[1, 1.2, 5], [1.05, 1.25, 5]]]), 3, 0)
     k3 = {l["limb"]: l for l in limb_coverage(knot, gt, parents, diag)["limbs"]}["joint_3"]
     assert k3["covered"] and abs(k3["median_span"] - 0.025) < 1e-12
+    # min_separation: a knot counts once, so it is one joint, not a chain; two joints farther apart still count
+    sep = 0.1 / 3  # 0.1 in the diagonal's units: the knot is 0.071 across, the first leg's joints 0.6 apart
+    k3 = {l["limb"]: l for l in limb_coverage(knot, gt, parents, diag, min_separation=sep)["limbs"]}["joint_3"]
+    assert not k3["covered"] and k3["tol_needed"] is None and k3["median_pred_joints"] == 1
+    p3 = {l["limb"]: l for l in limb_coverage(pred, gt, parents, diag, min_separation=sep)["limbs"]}["joint_3"]
+    assert p3["covered"] and p3["tol_needed"] == 0.0
+    wide = limb_coverage(knot, gt, parents, diag, min_separation=0.07 / 3)["limbs"]  # just under the knot's size
+    assert {l["limb"]: l for l in wide}["joint_3"]["covered"]
     # tol_needed: covered at every tolerance above it, not at or below it
     need = {l["limb"]: l["tol_needed"] for l in part["limbs"]}
     assert need["joint_3"] == 0.0  # both joints on the polyline
