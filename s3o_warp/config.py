@@ -292,6 +292,9 @@ class SkeletonConfig:
     """Never grow the skeleton beyond this many bones."""
     upsample_min_extent: float = 0.0
     """Upsampling splits only bones whose extent is at least this fraction of the largest."""
+    min_section_vertices: int = 4
+    """Growth, upsampling and joint creation split a bone only when each new bone would own at least this many
+    vertices (its part: the vertices it weighs most)."""
     merge_mode: str = "greedy"
     """greedy (each bone merges at most once per M-step) or components (all agreeing neighbours at once)."""
     merge_temperature: float = 1.0

@@ -358,6 +358,9 @@ class Fitter:
             if cfg.motion.resample_fallback == "isotropic":
                 log.warning("motion.resample_fallback=isotropic needs pymeshlab, which is not installed: a refused "
                             "resampling keeps the mesh (pip install pymeshlab, or set motion.resample_fallback=none)")
+        if cfg.skeleton.min_section_vertices < 1:
+            raise ConfigError(f"skeleton.min_section_vertices must be >= 1 (vertices each new bone of a split owns), "
+                              f"got {cfg.skeleton.min_section_vertices}")
         if not 0 <= cfg.skeleton.min_frames_fraction <= 1:
             raise ConfigError(f"skeleton.min_frames_fraction must be in [0, 1] (a fraction of the frame pairs; 0 = "
                               f"skeleton.min_frames alone), got {cfg.skeleton.min_frames_fraction}")

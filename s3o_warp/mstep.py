@@ -240,12 +240,14 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int, sym_plane=No
             C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
         anchors = sk.parent_anchors(state.parents, state.joints, state.joint_positions) if len(state.joints) else None
         edit = sk.grow_skeleton(X, W, C, Q, state.parents, state.extents, growth_factor=sc.growth_factor,
-                                sections=sc.growth_sections, anchors=anchors, sharpness=sc.sharpness)
+                                sections=sc.growth_sections, anchors=anchors, sharpness=sc.sharpness,
+                                min_section_vertices=sc.min_section_vertices)
         if model.num_bones + (edit.num_bones - model.num_bones) <= sc.max_bones:
             changed |= _apply(model, opt, state, edit, "grow", epoch, sc)
     elif epoch == sc.e1:
         edit = sk.upsample_skeleton(X, W, C, Q, state.parents, min_relative_extent=sc.upsample_min_extent,
-                                    sharpness=sc.sharpness, extents=state.extents)
+                                    sharpness=sc.sharpness, extents=state.extents,
+                                    min_section_vertices=sc.min_section_vertices)
         if edit.num_bones <= sc.max_bones:
             changed |= _apply(model, opt, state, edit, "upsample", epoch, sc)
     else:
@@ -300,7 +302,7 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int, sym_plane=No
                 X, W = _xw(model)
                 C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
                 edit = sk.split_at_joints(X, W, C, Q, state.parents, E, split, sharpness=sc.sharpness,
-                                          extents=state.extents)
+                                          extents=state.extents, min_section_vertices=sc.min_section_vertices)
                 changed |= _apply(model, opt, state, edit, "joint", epoch, sc)
     if not changed:
         state.history.append({"epoch": epoch, "operation": "none", "bones_before": model.num_bones,

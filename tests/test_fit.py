@@ -519,6 +519,7 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
     ("motion.polish_lr_factor=0", "motion.polish_lr_factor"),
     ("skeleton.motion_frame=image", "motion_frame"),
     ("skeleton.still_flow=0", "still_flow"),
+    ("skeleton.min_section_vertices=0", "min_section_vertices"),
 ])
 def test_fitter_refuses_a_bad_setting_before_any_work(tiny_sequence, tmp_path, bad, names):
     cfg = _cfg(**{"coarse.steps": 2})
@@ -661,6 +662,26 @@ def test_m_step_keeps_the_posed_mesh_and_the_loss(tiny_sequence, tmp_path, epoch
     sum(w * v for w, v in terms.values()).backward()
     f._step_window(frames)
     assert len(f.skel.parents) == f.model.num_bones
+
+
+def test_min_section_vertices_stops_the_m_steps_splits(tiny_sequence, tmp_path):
+    """skeleton.min_section_vertices reaches the upsampling and joint creation: when no bone owns enough vertices
+    for two sections, neither splits one; at the default both do."""
+    from s3o_warp.mstep import m_step
+
+    cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
+    sc, B0 = cfg.skeleton, f.model.num_bones
+    sc.min_section_vertices = f.model.verts.shape[0]
+    assert not m_step(f.model, f.opt, data, cfg, f.skel, sc.e1) and f.model.num_bones == B0  # no upsampling
+    sc.min_section_vertices = 4
+    assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1) and f.model.num_bones > B0
+    sc.t_o, sc.t_d, sc.min_bone_length = 2.0, 0.0, 0.0  # no merge, no pruning; every bone qualifies for a joint
+    B1 = f.model.num_bones
+    sc.min_section_vertices = f.model.verts.shape[0]
+    assert not m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones == B1
+    sc.min_section_vertices = 4
+    assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones > B1
+    assert f.skel.history[-1]["operation"] == "joint"
 
 
 def test_m_step_prunes_short_bones_and_keeps_the_loss(tiny_sequence, tmp_path):
