@@ -918,16 +918,17 @@ def _point_polyline_distance(points: np.ndarray, poly: np.ndarray, along: bool =
     return dk[np.arange(len(points)), k], s
 
 
-def _distinct(points: np.ndarray, d: np.ndarray, min_separation: float) -> np.ndarray:
-    """Per point, its distance ``d`` to the chain, or inf when a nearer point lies within ``min_separation``
-    of it (a knot of coincident joints counts once, by its nearest member)."""
+def _distinct(pos: np.ndarray, d: np.ndarray, min_separation: float) -> np.ndarray:
+    """Per joint, its distance ``d`` to the chain, or inf when a nearer joint's place along the chain ``pos``
+    (a fraction of its length) is within ``min_separation`` of its own: joints at one place along a limb (a
+    knot, or two side by side at its top) count once, by the nearest of them."""
     out = d.copy()
-    kept: list[int] = []
+    kept: list[float] = []
     for j in np.argsort(d, kind="stable"):
-        if any(np.linalg.norm(points[j] - points[k]) < min_separation for k in kept):
+        if any(abs(pos[j] - k) < min_separation for k in kept):
             out[j] = np.inf
         else:
-            kept.append(int(j))
+            kept.append(float(pos[j]))
     return out
 
 
@@ -941,16 +942,17 @@ def chain_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, chain, diag: 
     fewer than ``min_joints`` predicted joints) and ``median_span``: per frame, how much of the chain's length
     lies between the first and the last of the joints within ``tol`` (their nearest points on it), the median
     over the frames. Two joints in a knot at the hip cover a leg with a span near 0; a hip and a knee, about
-    half of it. With ``min_separation`` (x the diagonal) > 0, joints that close to a nearer one count once per
-    frame, so a knot of coincident joints is one joint, not a chain."""
+    half of it. With ``min_separation`` > 0, joints whose places along the chain (nearest points, as fractions
+    of its length) are closer than that to a nearer joint's count once per frame: a knot is one joint, and a
+    chain must spread along the limb."""
     pj = sim(pred_joints) if sim is not None else np.asarray(pred_joints, dtype=np.float64)
     gj = np.asarray(gt_joints, dtype=np.float64)
     T = gj.shape[0]
     ds = [_point_polyline_distance(pj[t], gj[t, list(chain)], along=True) for t in range(T)]
     d = np.stack([x[0] / diag[t] for t, x in enumerate(ds)])
-    if min_separation > 0:
-        d = np.stack([_distinct(pj[t], d[t], min_separation * diag[t]) for t in range(T)])
     pos = np.stack([x[1] for x in ds])
+    if min_separation > 0:
+        d = np.stack([_distinct(pos[t], d[t], min_separation) for t in range(T)])
     near = d < tol
     counts = near.sum(1)
     span = np.where(near.any(1), np.where(near, pos, -np.inf).max(1) - np.where(near, pos, np.inf).min(1), 0.0)
@@ -973,8 +975,8 @@ def limb_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, gt_parents: np
     every ``tol`` above it; None with fewer than ``min_joints`` predicted joints) and the covered fraction.
     ``branch=False`` leaves the branching ancestor out of the polyline (the limb's own joints: a tail from its
     base, not from the pelvis), so a joint where the limb meets the body, or a neighbouring limb's, does not
-    count for it. ``min_separation`` > 0: joints closer than that (x the diagonal) to a nearer one count once
-    (:func:`chain_coverage`), so a knot of coincident joints does not pass for a chain.
+    count for it. ``min_separation`` > 0: joints closer than that along the chain (a fraction of its length) to
+    a nearer one count once (:func:`chain_coverage`), so a knot at the top of a leg does not pass for a chain.
     """
     out = []
     for limb in gt_limbs(gt_parents, names):
@@ -1061,7 +1063,7 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
                  threshold_frame: Literal["reference", "target"] = "reference",
                  n_points: int = 5000, fscore_ratio: float = 0.02, icp_iters: int = 50, seed: int = 0,
                  chunk: int = 8, device: str = "cpu", progress: bool = True, rasterizer=None,
-                 chain_separation: float = 0.02) -> dict:
+                 chain_separation: float = 0.15) -> dict:
     """Score a run against a sequence: mask IoU, PCK-T, 3D shape and skeleton, whatever is available.
 
     Args:
@@ -1078,8 +1080,9 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
         fscore_ratio: F-score threshold as a fraction of the bbox diagonal.
         icp_iters: ICP iterations of the 3D alignment.
         seed: surface-sampling seed.
-        chain_separation: ``skeleton.limbs_distinct`` counts joints closer than this x the bbox diagonal to a
-            nearer one once (:func:`limb_coverage` with ``branch=False``); ``skeleton.limbs`` counts every joint.
+        chain_separation: ``skeleton.limbs_distinct`` counts joints closer than this fraction of the limb's
+            length along it to a nearer one once (:func:`limb_coverage` with ``branch=False``);
+            ``skeleton.limbs`` counts every joint.
         chunk: frames per render call.
         device: torch device of the renders.
         progress: tqdm bars.
@@ -1243,7 +1246,8 @@ def format_table(metrics: dict) -> str:
                 rows.append((what, f"{m[key]['covered']}/{m[key]['total']}",
                              f"{m[key]['min_joints']}+ joints within {100 * m[key]['tol']:g} % of the diagonal in half "
                              "the frames" + ("" if key == "limbs" else
-                                             f", the limb's own chain, {100 * m[key]['min_separation']:g} % apart")))
+                                             f", the limb's own chain, {100 * m[key]['min_separation']:g} % of "
+                                             "its length apart along it")))
     if "limb_identity" in metrics:
         m = metrics["limb_identity"]
         worst = max(m["limbs"], key=lambda o: o["swapped"], default=None)

@@ -35,8 +35,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="surface-sampling seed")
     ap.add_argument("--device", default="cpu", help="torch device of the renders (cpu, cuda:0)")
     ap.add_argument("--chunk", type=int, default=8, help="frames per render call")
-    ap.add_argument("--chain-separation", type=float, default=0.02,
-                    help="limbs of distinct joints: joints closer than this x the bbox diagonal count once")
+    ap.add_argument("--chain-separation", type=float, default=0.15,
+                    help="limbs of distinct joints: joints closer than this fraction of the limb's length along it "
+                         "count once")
     ap.add_argument("--out", help="where to write metrics.json (default: RUN_DIR/metrics.json)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")

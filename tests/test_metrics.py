@@ -577,14 +577,18 @@ def test_limb_coverage_on_a_hand_made_tree():
     knot = np.repeat(np.array([[[1, 1.2, 5], [1.05, 1.25, 5]]]), 3, 0)
     k3 = {l["limb"]: l for l in limb_coverage(knot, gt, parents, diag)["limbs"]}["joint_3"]
     assert k3["covered"] and abs(k3["median_span"] - 0.025) < 1e-12
-    # min_separation: a knot counts once, so it is one joint, not a chain; two joints farther apart still count
-    sep = 0.1 / 3  # 0.1 in the diagonal's units: the knot is 0.071 across, the first leg's joints 0.6 apart
-    k3 = {l["limb"]: l for l in limb_coverage(knot, gt, parents, diag, min_separation=sep)["limbs"]}["joint_3"]
+    # min_separation (along the chain, a fraction of its length): a knot counts once, so it is one joint, not a
+    # chain; the knot's joints sit at 0.6 and 0.625 of the leg, the first leg's joints at 0.6 and 0.9
+    k3 = {l["limb"]: l for l in limb_coverage(knot, gt, parents, diag, min_separation=0.15)["limbs"]}["joint_3"]
     assert not k3["covered"] and k3["tol_needed"] is None and k3["median_pred_joints"] == 1
-    p3 = {l["limb"]: l for l in limb_coverage(pred, gt, parents, diag, min_separation=sep)["limbs"]}["joint_3"]
+    p3 = {l["limb"]: l for l in limb_coverage(pred, gt, parents, diag, min_separation=0.15)["limbs"]}["joint_3"]
     assert p3["covered"] and p3["tol_needed"] == 0.0
-    wide = limb_coverage(knot, gt, parents, diag, min_separation=0.07 / 3)["limbs"]  # just under the knot's size
+    assert not {l["limb"]: l for l in limb_coverage(pred, gt, parents, diag, min_separation=0.31)["limbs"]}["joint_3"]["covered"]
+    wide = limb_coverage(knot, gt, parents, diag, min_separation=0.02)["limbs"]  # just under the knot's 0.025
     assert {l["limb"]: l for l in wide}["joint_3"]["covered"]
+    # two joints side by side at one place along the leg count once too
+    side = np.repeat(np.array([[[0.95, 1.2, 5], [1.05, 1.2, 5]]]), 3, 0)
+    assert not {l["limb"]: l for l in limb_coverage(side, gt, parents, diag, min_separation=0.15)["limbs"]}["joint_3"]["covered"]
     # tol_needed: covered at every tolerance above it, not at or below it
     need = {l["limb"]: l["tol_needed"] for l in part["limbs"]}
     assert need["joint_3"] == 0.0  # both joints on the polyline
