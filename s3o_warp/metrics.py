@@ -1192,7 +1192,7 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
             if gt.joint_parents is not None and len(gt.joint_parents) == gt.joints.shape[1]:
                 result["skeleton"]["limbs"] = limb_coverage(pred.joints_cam[pi], gt.joints[gi], gt.joint_parents, diag,
                                                             sim, gt.joint_names)
-                # the stricter reading: the limb's own joints, a knot of coincident joints counted once
+                # the stricter reading: the limb's own joints, joints at one place along it (a knot) counted once
                 result["skeleton"]["limbs_distinct"] = limb_coverage(
                     pred.joints_cam[pi], gt.joints[gi], gt.joint_parents, diag, sim, gt.joint_names, branch=False,
                     min_separation=chain_separation)
