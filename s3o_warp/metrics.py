@@ -939,7 +939,7 @@ def chain_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, chain, diag: 
     one index: a point)? The test of :func:`limb_coverage` for any chain, for example a neck between two
     branchings. Returns ``median_pred_joints`` (within ``tol`` x the bbox diagonal), ``covered`` (``min_joints``
     or more in at least half of the frames), ``tol_needed`` (covered at every ``tol`` above it; None with
-    fewer than ``min_joints`` predicted joints) and ``median_span``: per frame, how much of the chain's length
+    fewer than ``min_joints`` predicted joints, or distinct ones in half the frames) and ``median_span``: per frame, how much of the chain's length
     lies between the first and the last of the joints within ``tol`` (their nearest points on it), the median
     over the frames. Two joints in a knot at the hip cover a leg with a span near 0; a hip and a knee, about
     half of it. With ``min_separation`` > 0, joints whose places along the chain (nearest points, as fractions
@@ -1241,13 +1241,14 @@ def format_table(metrics: dict) -> str:
         m = metrics["skeleton"]
         rows.append(("joint dist / bbox diag", f(m["distance"], ".5f"),
                      f"GT {m['gt_joints']} deforming joints, predicted {m['pred_joints']}"))
-        for key, what in (("limbs", "limbs with a joint chain"), ("limbs_distinct", "... of distinct joints")):
-            if key in m:
-                rows.append((what, f"{m[key]['covered']}/{m[key]['total']}",
-                             f"{m[key]['min_joints']}+ joints within {100 * m[key]['tol']:g} % of the diagonal in half "
-                             "the frames" + ("" if key == "limbs" else
-                                             f", the limb's own chain, {100 * m[key]['min_separation']:g} % of "
-                                             "its length apart along it")))
+        if "limbs" in m:
+            c = m["limbs"]
+            rows.append(("limbs with a joint chain", f"{c['covered']}/{c['total']}",
+                         f"{c['min_joints']}+ joints within {100 * c['tol']:g} % of the diagonal in half the frames"))
+        if "limbs_distinct" in m:
+            c = m["limbs_distinct"]
+            rows.append(("... of distinct joints", f"{c['covered']}/{c['total']}",
+                         f"the limb's own chain, joints {100 * c['min_separation']:g} % of its length apart along it"))
     if "limb_identity" in metrics:
         m = metrics["limb_identity"]
         worst = max(m["limbs"], key=lambda o: o["swapped"], default=None)
