@@ -263,6 +263,16 @@ class SkeletonConfig:
     """Create a joint in a bone whose length varies over frames by more than t_d of its median length."""
     t_r: float = 0.4
     """Joint position: mean of the vertices with both bones' weights >= t_r."""
+    split_end_bones: bool = True
+    """Not in the paper: also create a joint in an end bone (one joint, a leg's shin and paw) whose part's two
+    halves move relative to each other in a way the one rigid bone does not reproduce (median over the frames
+    of the unexplained share above t_u). Eq. 6 cannot split an end bone: its length runs from its joint to its
+    far end, which both move with the bone, so it never varies. false = eq. 6 alone (the paper)."""
+    t_u: float = 0.4
+    """split_end_bones: the unexplained share of the halves' relative image motion, |observed - fitted| /
+    max(|observed|, |fitted|), median over the frames both halves are seen in, above which an end bone gets a
+    joint (0 = the fit reproduces the halves' motion, 0.5 = a knee the fit bends half way, 1 and above = it
+    does not follow at all)."""
     min_bone_length: float = 0.015
     """Not in the paper: after each merge, inner bones shorter than this fraction of the canonical mesh's bbox
     diagonal (and bones that own no vertex) are merged into their parent, and joint creation never leaves a half

@@ -7,7 +7,8 @@ Called by the fit between epochs of the joint phase. For epoch e (0-based, ``e1`
 - e > e1: physically constrained refinement: merge neighbouring bones whose flow-derived motion
   directions agree in every frame (eq. 8, cosine > t_o), merge bones shorter than ``min_bone_length``
   into their parents (not in the paper), and split bones whose length varies over the frames (eq. 6
-  corrected) into two bones joined at a new joint.
+  corrected) into two bones joined at a new joint, and (``skeleton.split_end_bones``, not in the paper) end
+  bones whose two halves move in a way the one rigid bone does not reproduce (:func:`end_bone_bending`).
 
 The motion compared in eq. 8 is, by ``skeleton.motion_frame``: the flow between the two crops (``crop``, the
 default), the motion in the frame with the crop boxes' own shift and zoom taken out (``frame``), or the
@@ -117,6 +118,17 @@ def merge_min_frames(sc, num_frames: int) -> int:
     return max(int(sc.min_frames), int(math.ceil(float(sc.min_frames_fraction) * max(num_frames - 1, 0) - 1e-9)))
 
 
+def _pair_windows(model, T: int, batch_frames: int):
+    """Windows of consecutive frames, each starting at the previous one's last frame, so that together they hold
+    every frame pair (t, t+1) once."""
+    chunk = max(2, batch_frames)
+    for s in range(0, T - 1, chunk - 1):
+        fr = torch.arange(s, min(s + chunk, T), device=model.verts.device)
+        if len(fr) < 2:
+            break
+        yield fr
+
+
 @torch.no_grad()
 def bone_motion_similarity(model, data, cfg) -> tuple[np.ndarray, np.ndarray]:
     """Eq. 4 + 8: per-bone flow over all frames (visible vertices only), min-over-frames cosine ``(B, B)``,
@@ -130,14 +142,9 @@ def bone_motion_similarity(model, data, cfg) -> tuple[np.ndarray, np.ndarray]:
         raise ConfigError(f"skeleton.motion_frame must be 'crop', 'frame' or 'body', got {sc.motion_frame!r}")
     from s3o_warp.geometry import project
 
-    T = data.num_frames
     W = model.skinning()
     FB, valid = [], []
-    chunk = max(2, cfg.motion.batch_frames)
-    for s in range(0, T - 1, chunk - 1):
-        fr = torch.arange(s, min(s + chunk, T), device=model.verts.device)
-        if len(fr) < 2:
-            break
+    for fr in _pair_windows(model, data.num_frames, cfg.motion.batch_frames):
         v = model(fr, weights=W)
         K = model.intrinsics_crop(fr)
         vis = vertex_visibility(v, model.faces)
@@ -177,6 +184,52 @@ def bone_length_variation(model, data, state: SkeletonState, cfg) -> tuple[np.nd
         fr = torch.arange(s, min(s + cfg.motion.batch_frames, data.num_frames), device=model.verts.device)
         lengths.append(sk.bone_lengths_per_frame(E, model.posed_object(fr, weights=Wt).cpu().double().numpy()))
     return sk.create_joints(np.concatenate(lengths, 0), t_d=sc.t_d, min_length=sc.min_bone_length * sk.size_of(X)), E
+
+
+@torch.no_grad()
+def end_bone_bending(model, data, state: SkeletonState, E: np.ndarray, cfg) -> np.ndarray:
+    """Per bone, how much of the relative motion of its part's two halves the fit leaves unexplained
+    (:func:`s3o_warp.skeleton.unexplained_motion`), ``(B,)``; NaN for bones that are not end bones (one joint),
+    are shorter than twice ``skeleton.min_bone_length``, cannot be cut or are seen in too few frames.
+
+    Not in the paper: an end bone's length runs from its joint to its far end, which both move with the bone,
+    so eq. 6 never gives it a joint; a knee inside it shows in the flow instead, as two halves that the one
+    rigid bone cannot move as the video does.
+    """
+    from s3o_warp.kernels.visibility import vertex_visibility
+    from s3o_warp.losses import vertex_flow_crop
+
+    sc = cfg.skeleton
+    X, W = _xw(model)
+    B = W.shape[1]
+    out = np.full(B, np.nan)
+    if not len(state.joints):
+        return out
+    ends = np.bincount(np.asarray(state.joints).ravel(), minlength=B) == 1
+    ends &= sk.bone_lengths(E, X) >= 2.0 * sc.min_bone_length * sk.size_of(X)
+    C = model.bone_centers.detach().cpu().double().numpy()
+    bones, W2 = sk.bone_halves(X, W, C, state.parents, E, ends, min_section_vertices=sc.min_section_vertices)
+    if not len(bones):
+        return out
+    W2 = torch.as_tensor(W2, dtype=torch.float32, device=model.verts.device)
+    Wt = model.skinning()
+    FB, GB, valid = [], [], []
+    for fr in _pair_windows(model, data.num_frames, cfg.motion.batch_frames):
+        v = model(fr, weights=Wt)
+        K = model.intrinsics_crop(fr)
+        fb, ok, gb = sk.bone_flow(v, K, data.flow_fwd[fr[:-1]], vertex_visibility(v, model.faces), W2,
+                                  conf=data.conf_fwd[fr[:-1]], min_visible=sc.min_visible, min_mass=sc.min_mass,
+                                  predicted=vertex_flow_crop(v, K))
+        FB.append(fb)
+        GB.append(gb)
+        valid.append(ok)
+    r, n = sk.unexplained_motion(torch.cat(FB), torch.cat(GB), torch.cat(valid),
+                                 np.arange(2 * len(bones)).reshape(-1, 2), min_flow=sc.min_flow,
+                                 min_frames=merge_min_frames(sc, data.num_frames))
+    out[bones] = r
+    log.info("M-step: unexplained motion of the end bones' halves: %s (t_u %.3g)",
+             " ".join(f"{b}:{x:.3f}/{k}" for b, x, k in zip(bones.tolist(), r, n.tolist())), sc.t_u)
+    return out
 
 
 def _mirror(model, cfg, sym_plane, seen: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -296,6 +349,12 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int, sym_plane=No
                 changed, mirror = True, _mirror(model, cfg, sym_plane, _seen_after(mirror, edit))
         if len(state.joints):
             split, E = bone_length_variation(model, data, state, cfg)
+            if sc.split_end_bones:  # not in the paper: a knee inside an end bone (end_bone_bending)
+                bend = end_bone_bending(model, data, state, E, cfg) > sc.t_u
+                if bend.any():
+                    log.info("M-step epoch %d: end bones %s bend inside (unexplained motion > t_u %.3g)", epoch,
+                             np.flatnonzero(bend).tolist(), sc.t_u)
+                split = split | bend
             if mirror is not None:
                 split = _from_mirror(split, mirror[1], mirror[0], "joint creation")
             if split.any() and model.num_bones + int(split.sum()) <= sc.max_bones:

@@ -27,7 +27,8 @@ apply_edit(model, optimizer, e)``, and after every edit W, C, Q and parents are 
     apply(prune_short_bones(bone_lengths(E, X), min_length, W, C, Q, parents))  # not in the paper
     E = bone_endpoints(X, W, tree_joints(parents))
     L = bone_lengths_per_frame(E, model.posed_object(frames, W))
-    apply(split_at_joints(X, W, C, Q, parents, E, create_joints(L, t_d, min_length)))
+    bend = end bones whose halves' unexplained_motion(bone_flow(..., predicted=...)) > t_u  # not in the paper
+    apply(split_at_joints(X, W, C, Q, parents, E, create_joints(L, t_d, min_length) | bend))
     pairs = tree_joints(parents); J = joint_positions(X, W, pairs); lengths = bone_lengths(E, X)
 """
 
@@ -47,6 +48,7 @@ from s3o_warp.skeleton_edit import (
     _np,
     apply_edit,
     assign_parts,
+    bone_halves,
     children_of,
     fit_bones_to_parts,
     grow_skeleton,
@@ -82,7 +84,8 @@ def bone_flow(
     min_mass: float = 3.0,
     pair_transform: torch.Tensor | None = None,
     rigid_next: torch.Tensor | None = None,
-) -> tuple[torch.Tensor, torch.Tensor]:
+    predicted: torch.Tensor | None = None,
+):
     """Per-bone image motion ``F^{B,t}`` from the observed flow, eq. 4, normalised.
 
     For each pair (t, t+1): project frame t's vertices with ``K[t]``, sample ``flow[t]`` bilinearly
@@ -114,10 +117,14 @@ def bone_flow(
             motion is the *articulated* part of the flow, ``p + f(p) - rigid_next`` (then scaled into crop-t
             pixels by ``pair_transform``'s linear part, if given): a bone that moves with the body reads as
             still, whatever the camera and the root do.
+        predicted: optional ``(T-1, N, 2)`` per-vertex motion of the fitted model in the same pixels as the
+            returned flow (``s3o_warp.losses.vertex_flow_crop`` for the crop flow), blended with the same
+            visibility and weights as the observed flow.
 
     Returns:
         ``F_B`` ``(T-1, B, 2)`` float32 bone flow in pixels (0 where not valid) and ``valid``
         ``(T-1, B)`` bool. Concretely, ``valid[t, b]`` is False when bone b is barely visible in frame t.
+        With ``predicted`` also ``G_B`` ``(T-1, B, 2)``, its blend (0 where not valid).
     """
     name = "bone_flow"
     if not (verts_cam.dim() == 3 and verts_cam.shape[-1] == 3):
@@ -140,6 +147,8 @@ def bone_flow(
         raise ValueError(f"{name}(): pair_transform must have shape ({T - 1}, 3, 3), got {tuple(pair_transform.shape)}")
     if rigid_next is not None and tuple(rigid_next.shape) != (T - 1, N, 2):
         raise ValueError(f"{name}(): rigid_next must have shape ({T - 1}, {N}, 2), got {tuple(rigid_next.shape)}")
+    if predicted is not None and tuple(predicted.shape) != (T - 1, N, 2):
+        raise ValueError(f"{name}(): predicted must have shape ({T - 1}, {N}, 2), got {tuple(predicted.shape)}")
     from s3o_warp.geometry import project
 
     with torch.no_grad():
@@ -175,7 +184,11 @@ def bone_flow(
         total = Wf.sum(0)
         valid = (mass >= min_visible * total) & (mass >= min_mass) & (mass > 0)
         F = torch.where(valid[..., None], num / mass.clamp_min(1e-12)[..., None], torch.zeros_like(num))
-    return F, valid
+        if predicted is None:
+            return F, valid
+        g = torch.einsum("tnc,nb->tbc", vis[..., None] * predicted.to(dev).float(), Wf)
+        G = torch.where(valid[..., None], g / mass.clamp_min(1e-12)[..., None], torch.zeros_like(g))
+    return F, valid, G
 
 
 def motion_similarity(F_B: torch.Tensor, valid: torch.Tensor, min_flow: float = 0.5,
@@ -234,6 +247,51 @@ def motion_similarity(F_B: torch.Tensor, valid: torch.Tensor, min_flow: float = 
         out = torch.where(use.sum(0) >= min_frames, out, torch.full_like(out, float("-inf")))
         out.fill_diagonal_(1.0)
     return (out, use.sum(0)) if return_frames else out
+
+
+def unexplained_motion(F_B: torch.Tensor, G_B: torch.Tensor, valid: torch.Tensor, pairs, min_flow: float = 0.5,
+                       min_frames: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """How much of the relative image motion of two parts the fitted motion leaves unexplained (not in the paper).
+
+    For each pair ``(p, d)`` of columns (the two halves of one bone's part, :func:`s3o_warp.skeleton.bone_halves`)
+    and each frame pair both are seen in: the observed relative motion ``o = F_d - F_p`` and the fitted one
+    ``g = G_d - G_p``, and ``r = |o - g| / max(|o|, |g|)`` (0 where both are under ``min_flow``). The result is the median of r over those
+    frames: about 0 when the fit moves the halves as the video does (a rigid part fitted well: its far half
+    turning about the near one is reproduced), towards 0.5 and above when the video's halves move relative to
+    each other in a way one rigid bone cannot follow (a knee inside the part). Pairs seen in fewer than
+    ``min_frames`` frames get NaN.
+
+    Args:
+        F_B, G_B: ``(T-1, B, 2)`` observed and fitted bone flow (:func:`bone_flow` with ``predicted``).
+        valid: ``(T-1, B)`` bool.
+        pairs: ``(K, 2)`` column pairs (near half, far half).
+        min_flow: pixels; relative motions below it in both count as agreement.
+        min_frames: fewest frames for a finite result.
+
+    Returns:
+        ``(K,)`` float64 medians (NaN where too few frames) and ``(K,)`` int64 frame counts.
+    """
+    P = _np(pairs, np.int64).reshape(-1, 2)
+    if F_B.dim() != 3 or tuple(G_B.shape) != tuple(F_B.shape) or tuple(valid.shape) != tuple(F_B.shape[:2]):
+        raise ValueError(f"unexplained_motion(): need F_B and G_B (T-1, B, 2) and valid (T-1, B), got "
+                         f"{tuple(F_B.shape)}, {tuple(G_B.shape)}, {tuple(valid.shape)}")
+    if len(P) and (P.min() < 0 or P.max() >= F_B.shape[1]):
+        raise ValueError(f"unexplained_motion(): pairs must index the {F_B.shape[1]} columns, got {P.tolist()}")
+    F = F_B.detach().cpu().double().numpy()
+    G = G_B.detach().cpu().double().numpy()
+    ok = valid.detach().cpu().numpy().astype(bool)
+    out, frames = np.full(len(P), np.nan), np.zeros(len(P), np.int64)
+    for k, (a, b) in enumerate(P):
+        use = ok[:, a] & ok[:, b]
+        frames[k] = int(use.sum())
+        if frames[k] < max(int(min_frames), 1):
+            continue
+        o = F[use, b] - F[use, a]
+        g = G[use, b] - G[use, a]
+        big = np.maximum(np.linalg.norm(o, axis=1), np.linalg.norm(g, axis=1))
+        r = np.linalg.norm(o - g, axis=1) / np.maximum(big, 1e-12)
+        out[k] = float(np.median(np.where(big >= float(min_flow), r, 0.0)))
+    return out, frames
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -660,6 +718,7 @@ __all__ = [
     "apply_edit",
     "assign_parts",
     "bone_endpoints",
+    "bone_halves",
     "bone_flow",
     "bone_lengths",
     "bone_lengths_per_frame",
@@ -685,6 +744,7 @@ __all__ = [
     "skeleton_json",
     "split_at_joints",
     "tree_joints",
+    "unexplained_motion",
     "upsample_skeleton",
     "virtual_bones",
 ]

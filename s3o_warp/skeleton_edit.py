@@ -531,6 +531,57 @@ def upsample_skeleton(
 # ---------------------------------------------------------------------------------------------------
 
 
+def _cut_inputs(name: str, X: np.ndarray, W: np.ndarray, endpoints, bones):
+    """The checked ``(B,)`` selection, the canonical endpoints ``(B, 2, 3)`` and the parts, for a midpoint cut."""
+    B = W.shape[1]
+    E = _np(endpoints)
+    _check(name, "endpoints", E, (B, 2, X.shape[0]))
+    sel = _np(bones, bool)
+    _check(name, "bones", sel, (B,))
+    return sel, np.einsum("bkn,nc->bkc", E, X), assign_parts(W)
+
+
+def _midpoint_cut(X, lab, ends, C, P, b: int, min_section_vertices: int):
+    """Bone b's part cut by the plane through its endpoints' midpoint m, perpendicular to them: ``(sec, m)``
+    with ``sec`` 0 on the parent's side and 1 beyond (over the part's vertices, in order), or None when a side
+    would own fewer than ``min_section_vertices``."""
+    pts = X[lab == b]
+    d = ends[b, 1] - ends[b, 0]
+    if np.linalg.norm(d) < 1e-12 or len(pts) < 2 * min_section_vertices:
+        return None
+    m = ends[b].mean(0)
+    if P[b] >= 0 and (C[P[b]] - m) @ d > 0:
+        d = -d
+    sec = ((pts - m) @ d > 0).astype(np.int64)
+    if np.bincount(sec, minlength=2).min() < min_section_vertices:
+        return None
+    return sec, m
+
+
+def bone_halves(verts, weights, centers, parents, endpoints, bones, min_section_vertices: int = 4):
+    """The two halves :func:`split_at_joints` would cut the selected bones' parts into, as blend weights.
+
+    Returns ``(halves, W2)``: the bones that can be cut ``(K,)`` and ``(N, 2K)`` weights, columns ``2k`` (the
+    parent's side) and ``2k + 1`` (beyond) holding bone ``halves[k]``'s weights on its part's vertices of that
+    half, 0 elsewhere (for :func:`s3o_warp.skeleton.bone_flow` and :func:`s3o_warp.skeleton.unexplained_motion`).
+    """
+    X, W, C, P = _bones_in("bone_halves", verts, weights, centers, parents=parents)
+    sel, ends, lab = _cut_inputs("bone_halves", X, W, endpoints, bones)
+    halves, cols = [], []
+    for b in np.flatnonzero(sel):
+        cut = _midpoint_cut(X, lab, ends, C, P, int(b), min_section_vertices)
+        if cut is None:
+            continue
+        idx = np.flatnonzero(lab == b)
+        for side in (0, 1):
+            w = np.zeros(X.shape[0])
+            w[idx[cut[0] == side]] = W[idx[cut[0] == side], b]
+            cols.append(w)
+        halves.append(int(b))
+    W2 = np.stack(cols, 1) if cols else np.zeros((X.shape[0], 0))
+    return np.asarray(halves, np.int64), W2
+
+
 def split_at_joints(
     verts,
     weights,
@@ -561,27 +612,12 @@ def split_at_joints(
         A :class:`SkeletonEdit`; ``joint_positions`` holds the midpoints m.
     """
     X, W, C, Q, P = _bones_in("split_at_joints", verts, weights, centers, precisions, parents)
-    B = W.shape[1]
-    E = _np(endpoints)
-    _check("split_at_joints", "endpoints", E, (B, 2, X.shape[0]))
-    sel = _np(bones, bool)
-    _check("split_at_joints", "bones", sel, (B,))
-    ends = np.einsum("bkn,nc->bkc", E, X)
-    lab = assign_parts(W)
+    sel, ends, lab = _cut_inputs("split_at_joints", X, W, endpoints, bones)
     splits, mids = {}, {}
     for b in np.flatnonzero(sel):
-        b = int(b)
-        pts = X[lab == b]
-        d = ends[b, 1] - ends[b, 0]
-        if np.linalg.norm(d) < 1e-12 or len(pts) < 2 * min_section_vertices:
-            continue
-        m = ends[b].mean(0)
-        if P[b] >= 0 and (C[P[b]] - m) @ d > 0:
-            d = -d
-        sec = ((pts - m) @ d > 0).astype(np.int64)
-        if np.bincount(sec, minlength=2).min() < min_section_vertices:
-            continue
-        splits[b], mids[b] = sec, m
+        cut = _midpoint_cut(X, lab, ends, C, P, int(b), min_section_vertices)
+        if cut is not None:
+            splits[int(b)], mids[int(b)] = cut
     if not splits:
         return _identity_edit(C, Q, P, extents)
     edit = _apply_splits(X, W, C, Q, P, splits, sharpness, extents=None if extents is None else _np(extents))

@@ -112,6 +112,10 @@ def main(argv=None) -> int:
     ap.add_argument("--no-branch", action="store_true",
                     help="with --t-o: a whole fit per t_o (default: the first t_o's fit, the others branched from its state "
                          "just before the first merge, fit(..., branch_from=...), which gives the same result)")
+    ap.add_argument("--branch-from", default=None, metavar="RUN_TEMPLATE",
+                    help="start each fit from another run's state just before its first merge (fit(..., branch_from=...)); "
+                         "{case} and {seed} are filled in, e.g. runs/bench/runs/{case}-s3o-{seed}. Only the settings the "
+                         "refinement reads (skeleton.t_o, t_u, split_end_bones) may differ from that run's")
     ap.add_argument("--figure-tag", default="",
                     help="with --t-o: name the repository's figure renders/skeleton_t_o-CASE-TAG-DEVICE.png, so a study "
                          "with other settings (e.g. --set skeleton.motion_frame=body --figure-tag body) does not "
@@ -147,6 +151,8 @@ def main(argv=None) -> int:
                 cfg = make_config(args.preset, overrides=[f"skeleton.method={method}"] + extra + args.overrides, seed=seed)
                 run = work / "runs" / (f"{case}-{method}-{seed}" + (f"-t_o{t_o}" if t_o is not None else ""))
                 parent = trunk.get(seed) if t_o is not None and not args.no_branch else None
+                if parent is None and args.branch_from:
+                    parent = Path(args.branch_from.format(case=case, seed=seed))
                 t0 = time.perf_counter()
                 metrics = fit(seq, run, cfg, device, branch_from=parent)
                 wall = time.perf_counter() - t0
@@ -158,7 +164,7 @@ def main(argv=None) -> int:
                     "command": " ".join(["python"] + sys.argv),
                     "case": case, "method": method, "seed": seed, "preset": args.preset, "overrides": args.overrides + extra,
                     "wall_seconds": round(wall, 1), "phase_seconds": phase_times(run),
-                    **({"branched_from": parent.name, "note": "wall_seconds: this fit's own (after the branch); "
+                    **({"branched_from": str(parent) if args.branch_from else parent.name, "note": "wall_seconds: this fit's own (after the branch); "
                         "phase_seconds: the shared part's from the parent's log"} if parent is not None else {}),
                     "iou": (metrics.get("mask_iou") or {}).get("mean"),
                     "pck_t": (metrics.get("pck_t") or {}).get("pck"),

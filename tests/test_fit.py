@@ -314,7 +314,7 @@ def test_a_branch_refuses_other_settings_and_a_run_without_its_checkpoint(tiny_s
     over = {"coarse.steps": 2, "motion.warmup_steps": 2, "motion.steps": 8, "skeleton.epochs": 4, "skeleton.e1": 1}
     a = tmp_path / "a"
     fit(tiny_sequence, a, _cfg(**over), torch.device("cpu"))
-    with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o may differ"):
+    with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o, skeleton.t_u, skeleton.split_end_bones may differ"):
         fit(tiny_sequence, tmp_path / "b", _cfg(**over, **{"motion.lr_bones": 0.123}), torch.device("cpu"), branch_from=a)
     assert not (tmp_path / "b").exists()  # refused before any work
     # a run from before a setting existed ran with its default: that setting does not count as a difference
@@ -684,6 +684,33 @@ def test_min_section_vertices_stops_the_m_steps_splits(tiny_sequence, tmp_path):
     assert f.skel.history[-1]["operation"] == "joint"
 
 
+def test_m_step_splits_end_bones_that_bend_and_keeps_the_loss(tiny_sequence, tmp_path):
+    """skeleton.split_end_bones: end bones whose halves' unexplained motion is above t_u get a joint (here t_u < 0:
+    every end bone seen in enough frames); off, or above every bone's, nothing splits. The loss does not jump."""
+    from s3o_warp.mstep import bone_length_variation, end_bone_bending, m_step
+
+    cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
+    sc = cfg.skeleton
+    assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1)  # upsampling: the joints the refinement reads
+    sc.t_o, sc.t_d, sc.min_bone_length = 2.0, 1e9, 0.0  # no merge, no pruning, no eq. 6 joint
+    B0 = f.model.num_bones
+    _, E = bone_length_variation(f.model, data, f.skel, cfg)
+    r = end_bone_bending(f.model, data, f.skel, E, cfg)
+    ends = np.bincount(f.skel.joints.ravel(), minlength=B0) == 1
+    assert np.isfinite(r).sum() >= 1 and not np.isfinite(r[~ends]).any()
+    assert ((r[np.isfinite(r)] >= 0) & (r[np.isfinite(r)] <= 2)).all()
+    sc.split_end_bones, sc.t_u = False, -1.0
+    assert not m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones == B0
+    sc.split_end_bones, sc.t_u = True, float(np.nanmax(r)) + 0.01
+    assert not m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones == B0
+    before, loss0 = _posed_and_loss(f, frames)
+    sc.t_u = -1.0
+    assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1)
+    assert f.model.num_bones == B0 + int(np.isfinite(r).sum()) and f.skel.history[-1]["operation"] == "joint"
+    after, loss1 = _posed_and_loss(f, frames)
+    _assert_no_jump(before, after, loss0, loss1)
+
+
 def test_m_step_prunes_short_bones_and_keeps_the_loss(tiny_sequence, tmp_path):
     """After e1 the M-step merges bones shorter than skeleton.min_bone_length into their parents; the
     posed mesh and the loss barely move (the short bone's few vertices follow its parent)."""
@@ -692,6 +719,7 @@ def test_m_step_prunes_short_bones_and_keeps_the_loss(tiny_sequence, tmp_path):
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     cfg.skeleton.t_o, cfg.skeleton.t_d = 2.0, 1e9  # no motion merge, no joint creation: only the pruning
+    cfg.skeleton.split_end_bones = False
     X, W = f.model.verts.detach().double().numpy(), f.model.skinning().detach().double().numpy()
     L = sk.bone_lengths(sk.bone_endpoints(X, W, f.skel.joints, t_r=cfg.skeleton.t_r), X) / sk.size_of(X)
     inner = np.flatnonzero(np.bincount(f.skel.parents[f.skel.parents >= 0], minlength=len(L)) > 0)
@@ -716,6 +744,7 @@ def test_m_step_does_not_merge_on_a_few_frames(tiny_sequence, tmp_path, caplog):
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     sc = cfg.skeleton
     sc.min_bone_length, sc.t_d, sc.merge_mode = 0.0, 1e9, "greedy"  # merges only
+    sc.split_end_bones = False
     S, N = bone_motion_similarity(f.model, data, cfg)
     P, B0 = f.skel.parents, f.model.num_bones
     kids = [b for b in range(B0) if P[b] >= 0 and np.isfinite(S[b, P[b]])]
@@ -730,6 +759,7 @@ def test_m_step_does_not_merge_on_a_few_frames(tiny_sequence, tmp_path, caplog):
     assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones == B0 - merges
     gc = g.cfg.skeleton
     gc.t_o, gc.min_bone_length, gc.t_d, gc.merge_mode = sc.t_o, 0.0, 1e9, "greedy"
+    gc.split_end_bones = False
     gc.min_frames_fraction = min(1.0, (int(N[b, P[b]]) + 0.5) / (data.num_frames - 1))  # one frame pair more
     assert merge_min_frames(gc, data.num_frames) == int(N[b, P[b]]) + 1
     with caplog.at_level(logging.INFO, logger="s3o_warp.mstep"):
@@ -761,6 +791,7 @@ def test_m_step_decides_mirror_partners_by_the_better_seen_one(tiny_sequence, tm
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     sc = cfg.skeleton
     sc.min_bone_length, sc.mirror, sc.mirror_tol, sc.merge_mode = 0.0, True, 0.1, "components"
+    sc.split_end_bones = False  # eq. 6's joints only
     X, W = f.model.verts.detach().double().numpy(), f.model.skinning().detach().double().numpy()
     parts = sk.shift_bones(X, W, f.model.bone_centers.detach().double().numpy())  # the parts' centroids
     m = sk.mirror_partners(parts, f.sym_plane, 0.1 * sk.size_of(X))
