@@ -737,6 +737,36 @@ def align_similarity(pred_points: list[np.ndarray], gt_points: list[np.ndarray],
     return best, info
 
 
+def frame_similarities(pred_verts: np.ndarray, pred_faces: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray,
+                       sim: Similarity, n_points: int = 3000, iters: int = 30, seed: int = 0) -> list[Similarity]:
+    """One similarity per frame: the sequence's ``sim``, then ICP on that frame alone (:func:`align_similarity`
+    from scale 1). It takes out what one sequence-wide alignment cannot: each frame's own error of the fitted
+    root pose, depth and scale (monocular depth and the camera's path), so what is left is the articulation.
+
+    Args:
+        pred_verts: float (T, N, 3) predicted camera-space vertices.
+        pred_faces: int (F, 3).
+        gt_verts: float (T, V, 3) ground-truth vertices of the same frames.
+        gt_faces: int (G, 3).
+        sim: the sequence's alignment (from :func:`shape_metrics`), applied first.
+        n_points: surface samples per frame and mesh.
+        iters: ICP iterations per frame.
+        seed: sampling seed (frame t uses ``[seed, t, 2]``).
+
+    Returns:
+        T similarities, each mapping the frame's predictions (camera space) onto the ground truth.
+    """
+    out = []
+    for t in range(pred_verts.shape[0]):
+        p = sim(sample_surface(pred_verts[t], pred_faces, n_points, [seed, t, 2]))
+        g = sample_surface(gt_verts[t], gt_faces, n_points, [seed, t, 2])
+        f, _ = align_similarity([p], [g], iters=iters, init_scale=1.0)
+        # f(sim(x)) = f.s R_f (sim.s R x + sim.t) + f.t
+        out.append(Similarity(f.scale * sim.scale, f.rotation @ sim.rotation,
+                              f.scale * f.rotation @ sim.translation + f.translation))
+    return out
+
+
 def chamfer_fscore(pred: np.ndarray, gt: np.ndarray, threshold: float) -> dict:
     """Symmetric Chamfer distance and F-score between two point sets (same units, not normalised).
 
@@ -1063,7 +1093,7 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
                  threshold_frame: Literal["reference", "target"] = "reference",
                  n_points: int = 5000, fscore_ratio: float = 0.02, icp_iters: int = 50, seed: int = 0,
                  chunk: int = 8, device: str = "cpu", progress: bool = True, rasterizer=None,
-                 chain_separation: float = 0.15) -> dict:
+                 chain_separation: float = 0.15, framewise_limbs: bool = True) -> dict:
     """Score a run against a sequence: mask IoU, PCK-T, 3D shape and skeleton, whatever is available.
 
     Args:
@@ -1083,6 +1113,9 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
         chain_separation: ``skeleton.limbs_distinct`` counts joints closer than this fraction of the limb's
             length along it to a nearer one once (:func:`limb_coverage` with ``branch=False``);
             ``skeleton.limbs`` counts every joint.
+        framewise_limbs: also ``skeleton.limbs_framewise``: ``limbs_distinct`` with every frame aligned on its
+            own (:func:`frame_similarities`), the rig's joints apart from each frame's root pose and depth error;
+            ``frame_scale`` lists each frame's scale over the sequence's.
         chunk: frames per render call.
         device: torch device of the renders.
         progress: tqdm bars.
@@ -1196,6 +1229,13 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
                 result["skeleton"]["limbs_distinct"] = limb_coverage(
                     pred.joints_cam[pi], gt.joints[gi], gt.joint_parents, diag, sim, gt.joint_names, branch=False,
                     min_separation=chain_separation)
+                if framewise_limbs:  # the same count on the rig alone: each frame aligned on its own
+                    sims = frame_similarities(pred.verts_cam[pi], pred.faces, gt.verts[gi], gt.faces, sim, seed=seed)
+                    aligned = np.stack([f(j) for f, j in zip(sims, pred.joints_cam[pi])])
+                    result["skeleton"]["limbs_framewise"] = {
+                        **limb_coverage(aligned, gt.joints[gi], gt.joint_parents, diag, None, gt.joint_names,
+                                        branch=False, min_separation=chain_separation),
+                        "frame_scale": [float(f.scale / sim.scale) for f in sims]}
         if gt.joints is not None and gt.joint_parents is not None and len(gt.joint_parents) == gt.joints.shape[1]:
             if pred.weights is not None:
                 result["limb_identity"] = limb_identity(pred.verts_cam[pi], pred.weights, gt.joints[gi],
@@ -1249,6 +1289,10 @@ def format_table(metrics: dict) -> str:
             c = m["limbs_distinct"]
             rows.append(("... of distinct joints", f"{c['covered']}/{c['total']}",
                          f"the limb's own chain, joints {100 * c['min_separation']:g} % of its length apart along it"))
+        if "limbs_framewise" in m:
+            c = m["limbs_framewise"]
+            rows.append(("... each frame aligned alone", f"{c['covered']}/{c['total']}",
+                         "the same count after a similarity per frame (the rig, apart from root pose and depth)"))
     if "limb_identity" in metrics:
         m = metrics["limb_identity"]
         worst = max(m["limbs"], key=lambda o: o["swapped"], default=None)

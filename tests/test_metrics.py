@@ -326,9 +326,49 @@ def test_ground_truth_scored_against_itself_is_perfect(scene):
     for key in ("limbs", "limbs_distinct"):  # the ground truth's own joints are a chain along its limb
         assert m["skeleton"][key]["covered"] == m["skeleton"][key]["total"] == 1, key
     assert m["skeleton"]["limbs_distinct"]["branch"] is False and re.search(r"of distinct joints +1/1", M.format_table(m))
+    assert m["skeleton"]["limbs_framewise"]["covered"] == 1 and re.search(r"each frame aligned alone +1/1", M.format_table(m))
     assert [(o["limb"], o["bone"], o["kept"]) for o in m["limb_identity"]["limbs"]] == [("foot", 1, 1.0)]
     assert m["skipped"] == {}
     json.dumps(m)  # JSON-ready
+
+
+def test_frame_similarities_take_out_each_frames_own_pose_error():
+    """A prediction whose every frame is off by its own similarity: the sequence alignment cannot undo it, the
+    per-frame alignments (the sequence's, then ICP on the frame alone) map its joints onto the ground truth."""
+    verts, faces, joints, _ = two_box_sequence()
+    T = len(verts)
+    pred, pj = np.empty(verts.shape), np.empty(joints.shape)
+    for t in range(T):  # x = (g - tr) @ R / s, so that s R x + tr = g; each frame its own
+        s, R = 1.0 + 0.04 * (-1) ** t, _rot("y", 0.1 * math.sin(2.0 * t)) @ _rot("z", 0.05 * t)
+        tr = np.array([0.2 * math.sin(t), 0.05 * t, 0.3 * math.cos(1.7 * t)])
+        pred[t], pj[t] = ((verts[t] - tr) @ R) / s, ((joints[t] - tr) @ R) / s
+    _, sim = M.shape_metrics(pred, faces, verts, faces, n_points=1000, icp_points=6000)
+    diag = M.bbox_diagonal(verts)
+    seq_err = np.linalg.norm(sim(pj) - joints, axis=-1).max(1) / diag
+    sims = M.frame_similarities(pred, faces, verts, faces, sim, n_points=4000)
+    err = np.stack([np.linalg.norm(f(pj[t]) - joints[t], axis=-1).max() for t, f in enumerate(sims)]) / diag
+    assert seq_err.max() > 0.1 and err.max() < 0.01, (seq_err, err)
+    # one similarity for every frame (no error of its own): each frame's ICP stays at the sequence's
+    _, same = M.shape_metrics(pred[:1].repeat(3, 0), faces, verts[:1].repeat(3, 0), faces, n_points=1000)
+    for f in M.frame_similarities(pred[:1].repeat(3, 0), faces, verts[:1].repeat(3, 0), faces, same):
+        assert np.linalg.norm(f(pj[0]) - joints[0], axis=-1).max() / diag[0] < 0.01
+
+
+def test_limbs_framewise_counts_the_rig_apart_from_each_frames_pose(scene, tmp_path):
+    """The ground truth with every frame pushed along the camera ray by its own amount: the sequence-aligned
+    count loses the leg, the per-frame reading keeps it."""
+    T = len(scene["verts"])
+    dz = np.array([0.0, 0.3, -0.3, 0.3, -0.3])[:T, None, None] * np.array([0, 0, 1.0])
+    run = tmp_path / "jolted"
+    run.mkdir()
+    np.savez(run / "motion.npz", verts_cam=scene["verts"] + dz, faces=scene["faces"],
+             K=np.broadcast_to(scene["K"], (T, 3, 3)), image_size=np.array([H, W]), frame_names=np.array(scene["names"]),
+             joints_cam=scene["joints"] + dz)
+    m = M.evaluate_run(run, scene["seq"], progress=False, n_points=1000)["skeleton"]
+    assert m["limbs_distinct"]["covered"] == 0 and m["limbs_framewise"]["covered"] == 1 == m["limbs_framewise"]["total"]
+    assert len(m["limbs_framewise"]["frame_scale"]) == T
+    off = M.evaluate_run(run, scene["seq"], progress=False, n_points=1000, framewise_limbs=False)["skeleton"]
+    assert "limbs_framewise" not in off
 
 
 def test_frozen_prediction_scores_clearly_lower(scene):
