@@ -173,6 +173,11 @@ class MotionConfig:
     fraction of its own width per step instead of lr_bones and does not walk out of its part; 0 = off."""
     lr_camera: float = 0.005
     """Adam learning rate of the focal length (log) and principal points."""
+    principal_point: str = "frame"
+    """frame: a principal point per frame, in the crop (LASR's; it starts at each crop's centre, so the object sits
+    on every frame's optical axis and its motion across the picture goes into the camera). shared: one principal
+    point for the video in full-frame pixels, from the frame's centre, as a real camera has (not in the paper): the
+    object's path across the picture is the root's, in camera space, and the exported camera's film offset is constant."""
     sigma: float = 1.0
     """Soft-silhouette blur sigma in square crop pixels at the start of each phase."""
     sigma_final: float = 0.1

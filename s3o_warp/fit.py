@@ -27,7 +27,7 @@ from s3o_warp.config import Config, save_toml, to_dict
 from s3o_warp.errors import ConfigError, InputError
 from s3o_warp.geometry import project
 from s3o_warp.large_steps import Adam
-from s3o_warp.model import ModelInit, S3OModel
+from s3o_warp.model import ModelInit, S3OModel, root_t_for_shared_principal_point
 
 log = logging.getLogger(__name__)
 
@@ -231,6 +231,10 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
     vpart = edge_of_bone[maha.argmin(1)]
     ft = torch.as_tensor(faces, dtype=torch.int64)
     fpart = torch.mode(vpart[ft], dim=1).values
+    root_t = torch.as_tensor(root[:3, 3], dtype=torch.float32).expand(T, 3).clone()
+    if cfg.motion.principal_point == "shared":  # the object where each crop's centre put it, one principal point
+        root_t = root_t_for_shared_principal_point(root_t, data.crop_to_frame.cpu(), S, f_full,
+                                                   ((W - 1) / 2, (H - 1) / 2))
     init = ModelInit(
         verts=vt,
         faces=ft,
@@ -239,11 +243,13 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
         rotations=torch.as_tensor(V, dtype=torch.float32),
         log_scales=torch.as_tensor(np.log(np.maximum(lam, 1e-8)), dtype=torch.float32),
         root_R=torch.as_tensor(root[:3, :3], dtype=torch.float32).expand(T, 3, 3).clone(),
-        root_t=torch.as_tensor(root[:3, 3], dtype=torch.float32).expand(T, 3).clone(),
+        root_t=root_t,
         focal=float(f_full),
         crop_scale=data.crop_scale.cpu(),
         crop_size=S,
         crop_to_frame=data.crop_to_frame.cpu(),
+        principal_point=cfg.motion.principal_point,
+        frame_size=(H, W),
     )
     return CoarseResult(
         init=init,
@@ -345,6 +351,9 @@ class Fitter:
         if not 0 <= cfg.motion.resample_max_lost <= 1:
             raise ConfigError(f"motion.resample_max_lost must be in [0, 1] (a fraction of the old vertices; 1 = always "
                               f"use the resampling), got {cfg.motion.resample_max_lost}")
+        if cfg.motion.principal_point not in ("frame", "shared"):
+            raise ConfigError(f"motion.principal_point must be 'frame' (one per frame, LASR's) or 'shared' (one for the "
+                              f"video), got {cfg.motion.principal_point!r}")
         if cfg.motion.resample_method not in ("marching", "isotropic"):
             raise ConfigError(f"motion.resample_method must be 'marching' or 'isotropic', got {cfg.motion.resample_method!r}")
         if cfg.motion.resample_fallback not in ("none", "marching", "isotropic"):
@@ -922,7 +931,7 @@ class Fitter:
         m = self.model
         keep = torch.ones(m.num_frames, dtype=torch.bool, device=frames.device)
         keep[frames] = False
-        per_frame = (m.root_aa, m.root_t, m.bone_aa, m.bone_t, m.pp)
+        per_frame = (m.root_aa, m.root_t, m.bone_aa, m.bone_t) + (() if m.pp_shared else (m.pp,))
         saved = [p.data[keep].clone() for p in per_frame]
         self._shape_step(self.opt.step)
         for p, v in zip(per_frame, saved):

@@ -3,7 +3,8 @@
 Notation (paper Table 4): ``M_c`` canonical mesh (verts X^0, faces, colours); bones B (centre C_b,
 orientation V_b, log-scales of the precision Lambda_b, length); per frame t the root transform T_0^t
 (object -> camera) and bone transforms T_b^t, each bone rotating about its own centre; intrinsics with
-one focal length shared over the video (full-frame pixels) and a principal point per frame in the crop.
+one focal length shared over the video (full-frame pixels) and a principal point per frame in the crop (LASR's),
+or one principal point for the whole video in full-frame pixels (``principal_point="shared"``, a real camera's).
 
 Posed vertices (eq. 3): ``X^t = T_0^t (sum_b W[n,b] T_b^t) X^0`` through the Warp skinning ops.
 Rotations are axis-angle vectors (never Euler angles); the root rotation is a learnable axis-angle
@@ -36,6 +37,21 @@ class ModelInit:
     crop_scale: torch.Tensor  # (T,) crop pixels per full-frame pixel
     crop_size: int  # S, the crop's side in pixels
     crop_to_frame: torch.Tensor  # (T, 3, 3) crop pixel -> full-frame pixel
+    principal_point: str = "frame"  # frame: one per frame in the crop (LASR); shared: one in full-frame pixels
+    frame_size: tuple | None = None  # (H, W) full frame; principal_point="shared" starts at its centre
+
+
+def root_t_for_shared_principal_point(root_t: torch.Tensor, crop_to_frame: torch.Tensor, crop_size: int,
+                                      focal: float, pp: tuple[float, float]) -> torch.Tensor:
+    """Root translations ``(T, 3)`` that put the object where a principal point at each crop's centre puts it,
+    with one principal point ``pp`` (full-frame pixels) instead: x = f X / Z + pp, so X moves by
+    (pp_t - pp) Z / f (exact at the root's depth Z)."""
+    c = torch.full((root_t.shape[0], 3), (crop_size - 1) / 2, dtype=torch.float64)
+    c[:, 2] = 1
+    pp_t = (crop_to_frame.double() @ c[..., None])[:, :2, 0]  # each crop's centre, full-frame pixels
+    out = root_t.double().clone()
+    out[:, :2] += (pp_t - torch.tensor(pp, dtype=torch.float64)) * out[:, 2:3] / float(focal)
+    return out.to(root_t.dtype)
 
 
 class S3OModel(nn.Module):
@@ -60,7 +76,14 @@ class S3OModel(nn.Module):
         self.bone_t = nn.Parameter(torch.zeros(T, B, 3, **f32))
         self.log_focal = nn.Parameter(torch.tensor(float(torch.log(torch.tensor(init.focal))), **f32))
         S = float(init.crop_size)
-        self.pp = nn.Parameter(torch.full((T, 2), (S - 1) / 2, **f32))
+        if init.principal_point not in ("frame", "shared"):
+            raise ValueError(f"principal_point must be 'frame' or 'shared', got {init.principal_point!r}")
+        self.pp_shared = init.principal_point == "shared"
+        if self.pp_shared:  # (2,) full-frame pixels, from the frame's centre
+            H, W = init.frame_size
+            self.pp = nn.Parameter(torch.tensor([(W - 1) / 2, (H - 1) / 2], **f32))
+        else:  # (T, 2) crop pixels, from each crop's centre
+            self.pp = nn.Parameter(torch.full((T, 2), (S - 1) / 2, **f32))
         self.register_buffer("visited", torch.zeros(T, dtype=torch.bool))  # warm-up sweep bookkeeping
         self.register_buffer("crop_scale", torch.as_tensor(init.crop_scale, **f32).clone())
         self.register_buffer("crop_to_frame", torch.as_tensor(init.crop_to_frame, **f32).clone())
@@ -110,10 +133,18 @@ class S3OModel(nn.Module):
         K = torch.zeros(len(frames), 3, 3, dtype=f.dtype, device=f.device)
         K[:, 0, 0] = f
         K[:, 1, 1] = f
-        K[:, 0, 2] = self.pp[frames, 0]
-        K[:, 1, 2] = self.pp[frames, 1]
+        pp = self.principal_point_crop(frames)
+        K[:, 0, 2] = pp[:, 0]
+        K[:, 1, 2] = pp[:, 1]
         K[:, 2, 2] = 1
         return K
+
+    def principal_point_crop(self, frames: torch.Tensor) -> torch.Tensor:
+        """The principal point in each frame's crop pixels ``(t, 2)`` (a shared one mapped through the crop)."""
+        if not self.pp_shared:
+            return self.pp[frames]
+        A = torch.linalg.inv(self.crop_to_frame[frames])  # frame -> crop pixels
+        return (A[:, :2, :2] @ self.pp[:, None])[..., 0] + A[:, :2, 2]
 
     def intrinsics_frame(self, frames: torch.Tensor) -> torch.Tensor:
         """K in full-frame pixels ``(t, 3, 3)`` = crop_to_frame @ K_crop."""

@@ -528,6 +528,7 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
     ("skeleton.motion_frame=image", "motion_frame"),
     ("skeleton.still_flow=0", "still_flow"),
     ("skeleton.min_section_vertices=0", "min_section_vertices"),
+    ("motion.principal_point=centre", "motion.principal_point"),
 ])
 def test_fitter_refuses_a_bad_setting_before_any_work(tiny_sequence, tmp_path, bad, names):
     cfg = _cfg(**{"coarse.steps": 2})
@@ -547,6 +548,37 @@ def test_isotropic_resampling_without_pymeshlab_is_refused_before_the_fit(tiny_s
     with pytest.raises(ConfigError, match="needs pymeshlab"):
         Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["motion.resample_method=isotropic"]),
                tmp_path, torch.device("cpu"))
+
+
+def test_a_shared_principal_point_starts_where_the_per_frame_ones_do_and_stays_one(tiny_sequence, tmp_path):
+    from s3o_warp.model import S3OModel
+
+    short = {"coarse.steps": 2, "motion.warmup_steps": 4, "motion.steps": 4}
+    cfg, shared_cfg = _cfg(**short), _cfg(**short, **{"motion.principal_point": "shared"})
+    data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
+    per, shared = (S3OModel(coarse_model(data, c).init) for c in (cfg, shared_cfg))
+    frames = torch.arange(data.num_frames)
+    with torch.no_grad():
+        Kp, Ks = per.intrinsics_frame(frames), shared.intrinsics_frame(frames)
+        H, W = data.frame_size
+        # the crops follow the object, so the per-frame points wander over the frame; the shared one is its centre
+        assert (Kp[:, :2, 2] - Kp[:1, :2, 2]).abs().max() > 2.0
+        assert torch.allclose(Ks[:, :2, 2], torch.tensor([(W - 1) / 2, (H - 1) / 2]).expand(len(frames), 2), atol=1e-3)
+        assert torch.allclose(Ks[:, 0, 0], Kp[:, 0, 0])
+        # the root starts where each crop's centre put the object: the same full-frame pixels, to perspective's
+        # difference over the object's depth (a fraction of a pixel)
+        def pixels(m, K):
+            v = m(frames)
+            return (v @ K.transpose(1, 2))[..., :2] / v[..., 2:]
+
+        px_per, px_shared = pixels(per, Kp), pixels(shared, Ks)
+        assert (px_per - px_shared).norm(dim=-1).max() < 0.5, (px_per - px_shared).norm(dim=-1).max()
+        assert (per.root_t[:, :2] - shared.root_t[:, :2]).abs().max() > 1e-3  # the root took the crops' shift
+    # a fit keeps one principal point (the exported intrinsics)
+    run = tmp_path / "run"
+    fit(tiny_sequence, run, shared_cfg, torch.device("cpu"))
+    K = np.load(run / "motion.npz")["K"]
+    assert np.abs(K[:, :2, 2] - K[:1, :2, 2]).max() < 1e-3 and np.abs(K[0, :2, 2] - [(W - 1) / 2, (H - 1) / 2]).max() > 0
 
 
 def test_known_turn_rate_skips_the_scoring(tiny_sequence, tmp_path):
