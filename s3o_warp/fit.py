@@ -38,6 +38,9 @@ BRANCH_MAY_DIFFER = ("skeleton.t_o", "skeleton.merge_quantile", "skeleton.t_u", 
                      "motion.polish_steps", "motion.polish_lr_factor")
 """The settings a branched fit may change: the refinement and the polish after the joint phase read them only
 after the branch (and output.*, preset: no effect on the fit)."""
+EARLIER_DEFAULTS = {"motion.principal_point": "frame"}
+"""Settings whose default changed since runs were first written without them: the value such a run had (a parent
+run's or a checkpoint's config that lacks the key is read with it, not with today's default)."""
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -1129,6 +1132,11 @@ class Fitter:
                 f"checkpoint {path} belongs to sequence '{st.get('sequence')}' ({st.get('num_frames')} frames), "
                 f"not '{self.data.name}' ({self.data.num_frames} frames); use another --out or drop --resume"
             )
+        pp = _flat(st.get("config") or {}).get("motion.principal_point", EARLIER_DEFAULTS["motion.principal_point"])
+        if pp != self.cfg.motion.principal_point:
+            raise InputError(f"checkpoint {path} was written with motion.principal_point={pp}, this fit has "
+                             f"{self.cfg.motion.principal_point}; add --set motion.principal_point={pp} to continue it, "
+                             "or start a fresh run")
         self._resize_bones(st["model"]["bone_centers"].shape[0])
         sm = st["model"]
         if sm["verts"].shape != self.model.verts.shape or sm["faces"].shape != self.model.faces.shape:
@@ -1261,7 +1269,7 @@ def _branch_checkpoint(parent: Path, out_dir: Path, cfg: Config) -> Path:
                          "output.branch_checkpoint=true); fit that run first or drop --branch-from")
     theirs = _flat(torch.load(ck, map_location="cpu", weights_only=False)["config"])
     ours = _flat(to_dict(cfg))
-    defaults = _flat(to_dict(Config()))  # a setting newer than the parent's run: it ran with the default
+    defaults = {**_flat(to_dict(Config())), **EARLIER_DEFAULTS}  # a setting newer than the parent's run: its default then
     theirs = {**{k: v for k, v in defaults.items() if k not in theirs}, **theirs}
     free = set(BRANCH_MAY_DIFFER) | {"preset"}
     differ = sorted(k for k in set(theirs) | set(ours)

@@ -335,6 +335,12 @@ def test_a_branch_refuses_other_settings_and_a_run_without_its_checkpoint(tiny_s
     assert _branch_checkpoint(a, tmp_path / "e", _cfg(**over)) == ck
     with pytest.raises(InputError, match=r"differ in motion.resample.trials \(4 there, 7 here\)"):
         _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.resample.trials": 7}))
+    # a setting whose default changed: a run without it had the earlier default, not today's
+    del state["config"]["motion"]["principal_point"]
+    torch.save(state, ck)
+    assert _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.principal_point": "frame"})) == ck
+    with pytest.raises(InputError, match=r"differ in motion.principal_point \('frame' there, 'shared' here\)"):
+        _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.principal_point": "shared"}))
     with pytest.raises(InputError, match="that is the run directory itself"):
         fit(tiny_sequence, a, _cfg(**over), torch.device("cpu"), branch_from=a)
     short = tmp_path / "short"  # 3 epochs, e1 1: the last M-step is the upsampling, t_o is never read
@@ -353,6 +359,12 @@ def test_resume_refuses_a_checkpoint_of_another_sequence(tiny_sequence, tmp_path
     other = make_sequence(tmp_path / "other", frames=6, size=(96, 72), seed=1, progress=False)
     with pytest.raises(InputError, match="belongs to sequence"):
         fit(other, run, cfg, torch.device("cpu"), resume=True)
+    # the other principal-point model: its parameters do not fit this one's, refused with the setting to pass
+    pp = cfg.motion.principal_point
+    other_pp = {"frame": "shared", "shared": "frame"}[pp]
+    with pytest.raises(InputError, match=f"written with motion.principal_point={pp}.*--set motion.principal_point={pp}"):
+        fit(tiny_sequence, run, _cfg(**{"coarse.steps": 2, "motion.warmup_steps": 2, "motion.steps": 2,
+                                        "motion.principal_point": other_pp}), torch.device("cpu"), resume=True)
     # a checkpoint written by another version of the format is refused with the reason
     ck = latest_checkpoint(run)
     st = torch.load(ck, weights_only=False)
