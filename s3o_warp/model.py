@@ -143,8 +143,8 @@ class S3OModel(nn.Module):
         """The principal point in each frame's crop pixels ``(t, 2)`` (a shared one mapped through the crop)."""
         if not self.pp_shared:
             return self.pp[frames]
-        A = torch.linalg.inv(self.crop_to_frame[frames])  # frame -> crop pixels
-        return (A[:, :2, :2] @ self.pp[:, None])[..., 0] + A[:, :2, 2]
+        # crop_to_frame is a scale 1 / crop_scale and an offset: crop pixel = (frame pixel - offset) x crop_scale
+        return (self.pp - self.crop_to_frame[frames, :2, 2]) * self.crop_scale[frames, None]
 
     def intrinsics_frame(self, frames: torch.Tensor) -> torch.Tensor:
         """K in full-frame pixels ``(t, 3, 3)`` = crop_to_frame @ K_crop."""
