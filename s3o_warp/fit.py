@@ -27,7 +27,7 @@ from s3o_warp.config import Config, save_toml, to_dict
 from s3o_warp.errors import ConfigError, InputError
 from s3o_warp.geometry import project
 from s3o_warp.large_steps import Adam
-from s3o_warp.model import ModelInit, S3OModel, root_t_for_shared_principal_point
+from s3o_warp.model import ModelInit, S3OModel, root_for_shared_principal_point
 
 log = logging.getLogger(__name__)
 
@@ -234,10 +234,11 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
     vpart = edge_of_bone[maha.argmin(1)]
     ft = torch.as_tensor(faces, dtype=torch.int64)
     fpart = torch.mode(vpart[ft], dim=1).values
+    root_R = torch.as_tensor(root[:3, :3], dtype=torch.float32).expand(T, 3, 3).clone()
     root_t = torch.as_tensor(root[:3, 3], dtype=torch.float32).expand(T, 3).clone()
-    if cfg.motion.principal_point == "shared":  # the object where each crop's centre put it, one principal point
-        root_t = root_t_for_shared_principal_point(root_t, data.crop_to_frame.cpu(), S, f_full,
-                                                   ((W - 1) / 2, (H - 1) / 2))
+    if cfg.motion.principal_point == "shared":  # the object as each crop's centre showed it, one principal point
+        root_R, root_t = root_for_shared_principal_point(root_R, root_t, data.crop_to_frame.cpu(), S, f_full,
+                                                         ((W - 1) / 2, (H - 1) / 2))
     init = ModelInit(
         verts=vt,
         faces=ft,
@@ -245,7 +246,7 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
         centers=cen,
         rotations=torch.as_tensor(V, dtype=torch.float32),
         log_scales=torch.as_tensor(np.log(np.maximum(lam, 1e-8)), dtype=torch.float32),
-        root_R=torch.as_tensor(root[:3, :3], dtype=torch.float32).expand(T, 3, 3).clone(),
+        root_R=root_R,
         root_t=root_t,
         focal=float(f_full),
         crop_scale=data.crop_scale.cpu(),

@@ -41,17 +41,30 @@ class ModelInit:
     frame_size: tuple | None = None  # (H, W) full frame; principal_point="shared" starts at its centre
 
 
-def root_t_for_shared_principal_point(root_t: torch.Tensor, crop_to_frame: torch.Tensor, crop_size: int,
-                                      focal: float, pp: tuple[float, float]) -> torch.Tensor:
-    """Root translations ``(T, 3)`` that put the object where a principal point at each crop's centre puts it,
-    with one principal point ``pp`` (full-frame pixels) instead: x = f X / Z + pp, so X moves by
-    (pp_t - pp) Z / f (exact at the root's depth Z)."""
-    c = torch.full((root_t.shape[0], 3), (crop_size - 1) / 2, dtype=torch.float64)
+def root_for_shared_principal_point(root_R: torch.Tensor, root_t: torch.Tensor, crop_to_frame: torch.Tensor,
+                                    crop_size: int, focal: float, pp: tuple[float, float]
+                                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Root rotations ``(T, 3, 3)`` and translations ``(T, 3)`` that show the object as a principal point at each
+    crop's centre shows it, with one principal point ``pp`` (full-frame pixels) instead.
+
+    A crop with its principal point at its centre is the camera turned to look along the ray through that centre,
+    ``d_t = ((c_t - pp) / f, 1)``; the object turned with it, ``R_d R`` and ``R_d t`` (``R_d`` the smallest rotation
+    taking the optical axis onto ``d_t``), is seen from the same side and lands on the same pixels to the second
+    order of the ray's angle. Moving it sideways alone would also turn the side it shows to the camera by that angle.
+    """
+    T = root_t.shape[0]
+    c = torch.full((T, 3), (crop_size - 1) / 2, dtype=torch.float64)
     c[:, 2] = 1
     pp_t = (crop_to_frame.double() @ c[..., None])[:, :2, 0]  # each crop's centre, full-frame pixels
-    out = root_t.double().clone()
-    out[:, :2] += (pp_t - torch.tensor(pp, dtype=torch.float64)) * out[:, 2:3] / float(focal)
-    return out.to(root_t.dtype)
+    d = torch.cat([(pp_t - torch.tensor(pp, dtype=torch.float64)) / float(focal), torch.ones(T, 1, dtype=torch.float64)], 1)
+    d = d / d.norm(dim=1, keepdim=True)
+    axis = torch.stack([-d[:, 1], d[:, 0], torch.zeros_like(d[:, 0])], 1)  # z x d
+    s = axis.norm(dim=1, keepdim=True)
+    aa = axis / s.clamp_min(1e-12) * torch.atan2(s, d[:, 2:3])
+    Rd = axis_angle_to_matrix(aa)
+    R = Rd @ root_R.double().expand(T, 3, 3)
+    t = (Rd @ root_t.double().expand(T, 3)[..., None])[..., 0]
+    return R.to(root_R.dtype), t.to(root_t.dtype)
 
 
 class S3OModel(nn.Module):

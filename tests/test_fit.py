@@ -586,6 +586,7 @@ def test_a_shared_principal_point_starts_where_the_per_frame_ones_do_and_stays_o
         px_per, px_shared = pixels(per, Kp), pixels(shared, Ks)
         assert (px_per - px_shared).norm(dim=-1).max() < 0.5, (px_per - px_shared).norm(dim=-1).max()
         assert (per.root_t[:, :2] - shared.root_t[:, :2]).abs().max() > 1e-3  # the root took the crops' shift
+        assert (per.root_R0 - shared.root_R0).abs().max() > 1e-4  # and turned with the ray to each crop's centre
     # a fit keeps one principal point (the exported intrinsics)
     run = tmp_path / "run"
     fit(tiny_sequence, run, shared_cfg, torch.device("cpu"))
