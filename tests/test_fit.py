@@ -594,6 +594,35 @@ def test_a_shared_principal_point_starts_where_the_per_frame_ones_do_and_stays_o
     assert np.abs(K[:, :2, 2] - K[:1, :2, 2]).max() < 1e-3 and np.abs(K[0, :2, 2] - [(W - 1) / 2, (H - 1) / 2]).max() > 0
 
 
+def test_the_shared_principal_points_start_shows_each_crops_view():
+    """Hand-made: crops far off the frame's centre (a ray 0.2 rad off the axis). The root on the crop's axis lands on
+    the crop's centre, and the side of the object facing the camera (the camera's direction in the object frame) is
+    the crop model's; moving the root sideways alone lands there too but shows another side."""
+    from s3o_warp.geometry import axis_angle_to_matrix
+    from s3o_warp.model import root_for_shared_principal_point
+
+    f, pp, S = 500.0, (319.5, 239.5), 64
+    centres = torch.tensor([[420.0, 239.5], [319.5, 140.0], [250.0, 330.0]], dtype=torch.float64)
+    scale = 0.5  # crop pixels per frame pixel
+    A = torch.zeros(3, 3, 3, dtype=torch.float64)  # crop -> frame: frame = crop / scale + offset
+    A[:, 0, 0] = A[:, 1, 1] = 1 / scale
+    A[:, 2, 2] = 1
+    A[:, :2, 2] = centres - (S - 1) / 2 / scale
+    R0 = axis_angle_to_matrix(torch.tensor([[0.3, -0.5, 0.2]], dtype=torch.float64)).expand(3, 3, 3)
+    t0 = torch.tensor([[0.0, 0.0, 4.0]], dtype=torch.float64).expand(3, 3)
+    R, t = root_for_shared_principal_point(R0, t0, A, S, f, pp)
+    assert torch.allclose(R @ R.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(3, 3, 3), atol=1e-12)
+    px = f * t[:, :2] / t[:, 2:] + torch.tensor(pp, dtype=torch.float64)
+    assert torch.allclose(px, centres, atol=1e-9), px
+    assert torch.allclose(t.norm(dim=1), t0.norm(dim=1))  # as far from the camera
+    side = lambda R, t: torch.einsum("tji,tj->ti", R, -t) / t.norm(dim=1, keepdim=True)  # noqa: E731
+    assert torch.allclose(side(R, t), side(R0, t0), atol=1e-12)
+    shifted = t0.clone()
+    shifted[:, :2] += (centres - torch.tensor(pp, dtype=torch.float64)) * t0[:, 2:] / f
+    turned_by = torch.arccos((side(R0, shifted) * side(R0, t0)).sum(1).clamp(-1, 1))
+    assert (turned_by > 0.15).all(), turned_by  # the old start showed the object 0.15-0.2 rad from the crop's side
+
+
 def test_known_turn_rate_skips_the_scoring(tiny_sequence, tmp_path):
     cfg = _cfg(**{"coarse.steps": 2, "motion.warmup_steps": 2, "motion.steps": 2, "motion.turn_rate": 1.5})
     run = tmp_path / "run"
