@@ -58,7 +58,8 @@ def root_for_shared_principal_point(root_R: torch.Tensor, root_t: torch.Tensor, 
     c = torch.full((T, 3), (crop_size - 1) / 2, dtype=torch.float64)
     c[:, 2] = 1
     pp_t = (crop_to_frame.double() @ c[..., None])[:, :2, 0]  # each crop's centre, full-frame pixels
-    d = torch.cat([(pp_t - torch.tensor(pp, dtype=torch.float64)) / float(focal), torch.ones(T, 1, dtype=torch.float64)], 1)
+    off = (pp_t - torch.tensor(pp, dtype=torch.float64)) / float(focal)
+    d = torch.cat([off, torch.ones(T, 1, dtype=torch.float64)], 1)  # the ray through each crop's centre
     d = d / d.norm(dim=1, keepdim=True)
     axis = torch.stack([-d[:, 1], d[:, 0], torch.zeros_like(d[:, 0])], 1)  # z x d
     s = axis.norm(dim=1, keepdim=True)
