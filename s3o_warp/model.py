@@ -51,8 +51,8 @@ def root_for_shared_principal_point(root_R: torch.Tensor, root_t: torch.Tensor, 
     ``d_t = ((c_t - pp) / f, 1)``; the object turned with it, ``R_d R`` and ``R_d t`` (``R_d`` the smallest rotation
     taking the optical axis onto ``d_t``), is seen from the same side, its point on the crop's axis lands on the
     crop's centre, and the rest moves by the rotation's perspective term (about f a u^2 for a ray angle a and an
-    object u radians wide). Moving it sideways alone (as before) lands as near but turns the side it shows to the
-    camera by the ray's angle.
+    object u radians wide). Moving it sideways alone would land as near but turn the side it shows to the camera
+    by the ray's angle.
     """
     T = root_t.shape[0]
     c = torch.full((T, 3), (crop_size - 1) / 2, dtype=torch.float64)
