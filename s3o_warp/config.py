@@ -283,6 +283,11 @@ class SkeletonConfig:
     diagonal (and bones that own no vertex) are merged into their parent, and joint creation never leaves a half
     shorter than it (0 = the paper: no limit; without it, hips and shoulders collect knots of ever shorter bones).
     Short end bones (tail tips, ears, hooves) are kept."""
+    prune_empty_at_end: bool = True
+    """Not in the paper: when the fit ends, bones that own no vertex (the fit moved their region to a neighbour
+    after the last M-step, or a split left them none) are merged into their parent before the joints are
+    placed, as the M-step does after each merge (min_bone_length). Such a bone moves nothing, and its joints
+    fall back to far-apart borders (a leg's top joint at the tail's base). false = export them as they are."""
     mirror: bool = False
     """Not in the paper: a bone and its mirror partner across the lift's symmetry plane get the same refinement
     decisions (merge, short-bone pruning, joint creation), taken by whichever of the two is seen moving in more

@@ -774,12 +774,19 @@ class Fitter:
             bar.close()
         self._log({"phase": "eval", "step": 0, "seconds": round(time.perf_counter() - self.t0, 3),
                    "what": "final", "iou_all_frames": self.hard_iou()})
-        if self.phase != "done":  # the shape moved since the last M-step: joints onto the final mesh
-            from s3o_warp.mstep import refresh_joints
-
-            refresh_joints(self.model, self.skel, self.cfg.skeleton)
+        if self.phase != "done":
+            self.final_skeleton()
         self.phase, self.step = "done", 0
         self.save_checkpoint()
+
+    def final_skeleton(self) -> None:
+        """The shape moved since the last M-step: bones left owning no vertex go (``skeleton.prune_empty_at_end``),
+        and the joints are placed on the final mesh."""
+        from s3o_warp.mstep import prune_empty_bones, refresh_joints
+
+        sc = self.cfg.skeleton
+        if not (sc.method == "s3o" and sc.prune_empty_at_end and prune_empty_bones(self.model, self.opt, self.skel, sc)):
+            refresh_joints(self.model, self.skel, sc)
 
     def resolve_crossings(self) -> list[int]:
         """Paired limbs swing through their crossings instead of bouncing (``s3o_warp.crossings``); logs

@@ -98,6 +98,19 @@ def refresh_joints(model, state: SkeletonState, sc) -> None:
     state.joint_positions = J
 
 
+def prune_empty_bones(model, opt, state: SkeletonState, sc, epoch: int = -1) -> bool:
+    """Merge the bones that own no vertex into their parents (:func:`s3o_warp.skeleton.prune_short_bones` with
+    no length limit), carrying motion and optimiser state over; the fit's last step (``skeleton.prune_empty_at_end``).
+    Returns whether the skeleton changed."""
+    if not len(state.joints):
+        return False
+    X, W = _xw(model)
+    C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
+    L = sk.bone_lengths(sk.bone_endpoints(X, W, state.joints, t_r=sc.t_r, far_fraction=sc.far_fraction), X)
+    edit = sk.prune_short_bones(L, 0.0, W, C, Q, state.parents, extents=state.extents)
+    return _apply(model, opt, state, edit, "prune empty (end)", epoch, sc)
+
+
 def _apply(model, opt, state: SkeletonState, edit, what: str, epoch: int, sc) -> bool:
     if not edit.changed:
         return False

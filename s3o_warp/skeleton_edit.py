@@ -756,8 +756,9 @@ def prune_short_bones(lengths, min_length: float, weights, centers, precisions, 
 
     Not in the paper. Joint creation (eq. 6) compares a bone's length range with its own median, so a
     short bone at a strongly bending joint (a hip, a shoulder) keeps qualifying and is split again and
-    again into a knot of ever shorter bones; an upsampled bone can also end up owning no vertex at all
-    (length 0). Such bones carry no motion of their own that their neighbours do not, and they clutter
+    again into a knot of ever shorter bones; an upsampled or split bone can also end up owning no vertex
+    at all, whatever its length (an inner one's two joints then fall back to its neighbours' borders, which
+    can lie far apart: a leg's top joint at the tail's base). Such bones carry no motion of their own that their neighbours do not, and they clutter
     the exported rig. A short end bone (no children) that owns vertices is kept: it is a tail tip, an
     ear or a hoof. The pairs (short bone, neighbour) are merged as by :func:`merge_bones` in
     ``"components"`` mode with the paper's weights (temperature 1), so a chain of short bones collapses
@@ -765,11 +766,12 @@ def prune_short_bones(lengths, min_length: float, weights, centers, precisions, 
 
     Args:
         lengths: ``(B,)`` canonical bone lengths (:func:`s3o_warp.skeleton.bone_lengths`).
-        min_length: bones with ``lengths < min_length`` are merged (same units as ``lengths``).
+        min_length: bones with ``lengths < min_length`` are merged (same units as ``lengths``); 0 = only the
+            empty ones.
         weights, centers, precisions, parents, extents: as in :func:`merge_bones`.
 
     Returns:
-        A :class:`SkeletonEdit` (the identity when no bone is short or the only bone is).
+        A :class:`SkeletonEdit` (the identity when no bone is short or empty, or the only bone is).
     """
     L = _np(lengths)
     P = _np(parents, np.int64)
@@ -782,7 +784,7 @@ def prune_short_bones(lengths, min_length: float, weights, centers, precisions, 
     owned = np.bincount(assign_parts(_np(weights)), minlength=B)[:B]
     kids = [[c for c in k if owned[c] > 0] for k in kids]  # empty children go anyway: they do not make an inner bone
     short = []
-    for b in np.flatnonzero(L < min_length):
+    for b in np.flatnonzero((L < min_length) | (owned == 0)):  # an empty bone's joints can lie far apart
         b = int(b)
         if not (kids[b] or owned[b] == 0):
             continue  # a short end bone with vertices: kept
@@ -793,7 +795,7 @@ def prune_short_bones(lengths, min_length: float, weights, centers, precisions, 
         short.append(b)
     if not short:
         return _identity_edit(_np(centers), _np(precisions), P, extents)
-    log.info("prune_short_bones: bones %s shorter than %.4g (or empty)", short, min_length)
+    log.info("prune_short_bones: bones %s shorter than %.4g or empty", short, min_length)
     return merge_bones(S, weights, centers, precisions, P, t_o=0.5, mode="components", temperature=1.0,
                        extents=extents)
 

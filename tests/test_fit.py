@@ -818,6 +818,36 @@ def test_m_step_prunes_short_bones_and_keeps_the_loss(tiny_sequence, tmp_path):
     assert not m_step(f.model, f.opt, data, cfg, f.skel, cfg.skeleton.e1 + 1)
 
 
+def test_the_fits_end_merges_bones_that_own_no_vertex(tiny_sequence, tmp_path):
+    """skeleton.prune_empty_at_end: an inner bone that owns no vertex when the fit ends is merged into its parent
+    (its child re-hangs there, a joint between them replaces its two), and the posed mesh and the loss stay."""
+    from s3o_warp.mstep import m_step
+
+    cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
+    assert m_step(f.model, f.opt, data, cfg, f.skel, cfg.skeleton.e1)  # upsampling: chains with inner bones
+    P = f.skel.parents
+    inner = [b for b in range(len(P)) if P[b] >= 0 and (P == b).any()]
+    b = inner[0]
+    before, loss0 = _posed_and_loss(f, frames)
+    with torch.no_grad():  # the bone's Gaussian moves far off: it owns nothing and weighs ~0 everywhere
+        f.model.bone_centers[b] += 10.0 * (f.model.verts.amax(0) - f.model.verts.amin(0)).norm()
+    assert (f.model.skinning().argmax(1) != b).all()
+    B0, parent, kids = f.model.num_bones, int(P[b]), np.flatnonzero(P == b)
+    cfg.skeleton.prune_empty_at_end = False
+    f.final_skeleton()
+    assert f.model.num_bones == B0 and len(f.skel.joints) == B0 - 1  # off: kept, joints refreshed
+    cfg.skeleton.prune_empty_at_end = True
+    f.final_skeleton()
+    assert f.model.num_bones == B0 - 1 and f.skel.history[-1]["operation"] == "prune empty (end)"
+    new = lambda x: x - (x > b)  # noqa: E731 - indices after b shift down by one
+    assert [int(f.skel.parents[new(k)]) for k in kids] == [new(parent)] * len(kids)
+    assert {(new(parent), new(int(k))) for k in kids} <= {tuple(j) for j in f.skel.joints.tolist()}
+    after, loss1 = _posed_and_loss(f, frames)  # as before the bone emptied (its regulariser aside)
+    _assert_no_jump(before, after, loss0, loss1)
+    f.final_skeleton()  # nothing empty any more
+    assert f.model.num_bones == B0 - 1
+
+
 def test_m_step_does_not_merge_on_a_few_frames(tiny_sequence, tmp_path, caplog):
     """A pair that agrees (> t_o) merges when compared on enough frame pairs, and is kept apart, with one log
     line, when skeleton.min_frames_fraction asks for more frame pairs than it was compared on."""

@@ -440,7 +440,7 @@ def test_prune_short_bones_merges_into_the_parent():
     assert e.extents.tolist() == [1.0, 1.0]
     # nothing shorter than the limit: unchanged; a limit of 0 never prunes
     assert not sk.prune_short_bones(np.array([1.0, 0.5, 1.0]), 0.2, W, C, Q, np.array([-1, 0, 1])).changed
-    assert not sk.prune_short_bones(np.zeros(3), 0.0, W, C, Q, np.array([-1, 0, 1])).changed
+    assert not sk.prune_short_bones(np.zeros(3), 0.0, W, C, Q, np.array([-1, 0, 1])).changed  # none empty
     # a chain of short bones collapses into the long bone it hangs from; the long child re-hangs on it
     lab4 = W.argmax(1)
     lab4[-50:] = 3  # the far half of bone 2's vertices go to bone 3
@@ -458,6 +458,13 @@ def test_prune_short_bones_merges_into_the_parent():
     W_empty[:, 2] = 0.0  # bone 2 owns nothing
     ee = sk.prune_short_bones(np.array([1.0, 1.0, 0.0]), 0.1, W_empty, C, Q, np.array([-1, 0, 1]))
     assert [[i for i, _ in s] for s in ee.sources] == [[0], [1, 2]]
+    # an empty inner bone goes whatever its length (its joints fall back to far-apart borders), also at limit 0
+    W_mid = W.copy()
+    W_mid[:, 0] += W_mid[:, 1]
+    W_mid[:, 1] = 0.0  # bone 1 owns nothing
+    for limit in (0.1, 0.0):
+        em = sk.prune_short_bones(np.array([1.0, 0.8, 1.0]), limit, W_mid, C, Q, np.array([-1, 0, 1]))
+        assert [[i for i, _ in s] for s in em.sources] == [[0, 1], [2]] and em.parents.tolist() == [-1, 0]
     # ... and a short bone whose only child owns nothing is an end bone: it stays, the empty child goes
     ee = sk.prune_short_bones(np.array([1.0, 0.01, 0.0]), 0.1, W_empty, C, Q, np.array([-1, 0, 1]))
     assert [[i for i, _ in s] for s in ee.sources] == [[0], [1, 2]]
