@@ -1018,6 +1018,16 @@ def limb_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, gt_parents: np
             "branch": branch, "min_separation": min_separation}
 
 
+def empty_bones(weights: np.ndarray) -> dict:
+    """Bones that are the largest weight of no vertex (``weights`` ``(N, B)``): they move nothing, and their
+    joints fall back to far-apart borders. Returns ``count`` (B) and ``empty`` (their indices)."""
+    W = np.asarray(weights)
+    if W.ndim != 2 or W.shape[1] == 0:
+        raise ValueError(f"empty_bones(): weights must have shape (N, B) with B >= 1, got {W.shape}")
+    owned = np.bincount(W.argmax(1), minlength=W.shape[1])
+    return {"count": int(W.shape[1]), "empty": np.flatnonzero(owned == 0).tolist()}
+
+
 def limb_identity(pred_verts: np.ndarray, weights: np.ndarray, gt_joints: np.ndarray, gt_parents: np.ndarray,
                   sim: Similarity | None = None, names: list[str] | None = None, k: int = 5) -> dict:
     """Do the fitted limbs keep their identity through the video, or swap places (legs that bounce off
@@ -1202,6 +1212,10 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
         result["joints_inside"] = joints_inside(pred.joints_cam, pred.verts_cam, pred.faces)
     else:
         skipped["joints_inside"] = f"{pred.source} has no joints_cam"
+    if pred.weights is not None:
+        result["bones"] = empty_bones(pred.weights)
+    else:
+        skipped["bones"] = f"{pred.source} has no weights"
 
     # ---- 3D shape and skeleton against synthetic ground truth ----
     if ground_truth is not None:
@@ -1271,6 +1285,10 @@ def format_table(metrics: dict) -> str:
         m = metrics["joints_inside"]
         rows.append(("joints inside the body", f(m["fraction"], ".3f"),
                      f"fraction of (frame, joint) pairs; farthest outside {f(m['max_outside'], '.4g')}"))
+    if "bones" in metrics:
+        m = metrics["bones"]
+        rows.append(("bones owning no vertex", f"{len(m['empty'])}/{m['count']}",
+                     "bones that are no vertex's largest weight" + (f": {m['empty']}" if m["empty"] else "")))
     if "shape_3d" in metrics:
         m = metrics["shape_3d"]
         rows.append(("Chamfer / bbox diag", f(m["chamfer"], ".5f"),

@@ -328,6 +328,7 @@ def test_ground_truth_scored_against_itself_is_perfect(scene):
     assert m["skeleton"]["limbs_distinct"]["branch"] is False and re.search(r"of distinct joints +1/1", M.format_table(m))
     assert m["skeleton"]["limbs_framewise"]["covered"] == 1 and re.search(r"each frame aligned alone +1/1", M.format_table(m))
     assert [(o["limb"], o["bone"], o["kept"]) for o in m["limb_identity"]["limbs"]] == [("foot", 1, 1.0)]
+    assert m["bones"] == {"count": 2, "empty": []} and re.search(r"bones owning no vertex +0/2", M.format_table(m))
     assert m["skipped"] == {}
     json.dumps(m)  # JSON-ready
 
@@ -398,7 +399,7 @@ def test_scores_a_synth_sequence(tmp_path):
         scores[name] = M.evaluate_run(run, seq, progress=False, n_points=1000)
     good, bad = scores["self"], scores["frozen"]
     assert good["mask_iou"]["mean"] == 1.0 and good["pck_t"]["pck"] == 100.0
-    assert list(good["skipped"]) == ["limb_identity"]  # these motion.npz files carry no skinning weights
+    assert sorted(good["skipped"]) == ["bones", "limb_identity"]  # these motion.npz files carry no skinning weights
     assert good["shape_3d"]["chamfer"] < 1e-6 and good["shape_3d"]["fscore"] == 1.0 and good["skeleton"]["distance"] < 1e-5
     assert bad["mask_iou"]["mean"] < 0.9 and bad["shape_3d"]["fscore"] < 0.9 and bad["skeleton"]["distance"] > 0.01
     assert bad["pck_t"]["pck"] < good["pck_t"]["pck"]
@@ -574,6 +575,14 @@ def test_badja_keypoints_fall_inside_davis_masks(shared_data, animal, tmp_path):
     # measured: cows 96.9% inside, 99.7% within 3 px, all within 5 px; dog 99.5% inside, all within 3 px
     assert (dist == 0).mean() > 0.95
     assert (dist <= 5).mean() > 0.99
+
+
+def test_empty_bones_are_the_largest_weight_of_no_vertex():
+    W = np.array([[0.6, 0.3, 0.1, 0.0], [0.2, 0.7, 0.1, 0.0], [0.5, 0.1, 0.4, 0.0]])  # bone 2 weighs, owns nothing
+    assert M.empty_bones(W) == {"count": 4, "empty": [2, 3]}
+    assert M.empty_bones(W[:, :2]) == {"count": 2, "empty": []}
+    with pytest.raises(ValueError, match="empty_bones"):
+        M.empty_bones(W[0])
 
 
 def test_joints_inside_a_moving_box():
