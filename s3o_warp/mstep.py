@@ -101,7 +101,8 @@ def refresh_joints(model, state: SkeletonState, sc) -> None:
 def prune_empty_bones(model, opt, state: SkeletonState, sc, epoch: int = -1) -> bool:
     """Merge the bones that own no vertex into their parents (:func:`s3o_warp.skeleton.prune_short_bones` with
     no length limit), carrying motion and optimiser state over; the fit's last step (``skeleton.prune_empty_at_end``).
-    Returns whether the skeleton changed."""
+    ``epoch`` only labels the history entry and the log line (-1: after the last epoch). Returns whether the
+    skeleton changed."""
     if not len(state.joints):
         return False
     X, W = _xw(model)
