@@ -105,11 +105,18 @@ def prune_empty_bones(model, opt, state: SkeletonState, sc, epoch: int = -1) -> 
     skeleton changed."""
     if not len(state.joints):
         return False
+    return _apply(model, opt, state, _prune_edit(model, state, sc, 0.0), "prune empty (end)", epoch, sc)
+
+
+def _prune_edit(model, state: SkeletonState, sc, min_length: float, mirror=None):
+    """:func:`s3o_warp.skeleton.prune_short_bones` on the model's canonical bone lengths; ``min_length`` a fraction
+    of the mesh's size; ``mirror`` (partners, seen) takes each length from the better-seen of a bone and its partner."""
     X, W = _xw(model)
     C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
     L = sk.bone_lengths(sk.bone_endpoints(X, W, state.joints, t_r=sc.t_r, far_fraction=sc.far_fraction), X)
-    edit = sk.prune_short_bones(L, 0.0, W, C, Q, state.parents, extents=state.extents)
-    return _apply(model, opt, state, edit, "prune empty (end)", epoch, sc)
+    if mirror is not None:
+        L = _from_mirror(L, mirror[1], mirror[0], "lengths")
+    return sk.prune_short_bones(L, min_length * sk.size_of(X), W, C, Q, state.parents, extents=state.extents)
 
 
 def _apply(model, opt, state: SkeletonState, edit, what: str, epoch: int, sc) -> bool:
@@ -351,14 +358,7 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int, sym_plane=No
         if _apply(model, opt, state, edit, "merge", epoch, sc):
             changed, mirror = True, _mirror(model, cfg, sym_plane, _seen_after(mirror, edit))
         if sc.min_bone_length > 0 and len(state.joints):
-            X, W = _xw(model)
-            C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
-            E = sk.bone_endpoints(X, W, state.joints, t_r=sc.t_r, far_fraction=sc.far_fraction)
-            L = sk.bone_lengths(E, X)
-            if mirror is not None:
-                L = _from_mirror(L, mirror[1], mirror[0], "lengths")
-            edit = sk.prune_short_bones(L, sc.min_bone_length * sk.size_of(X), W, C, Q,
-                                        state.parents, extents=state.extents)
+            edit = _prune_edit(model, state, sc, sc.min_bone_length, mirror)
             if _apply(model, opt, state, edit, "prune", epoch, sc):
                 changed, mirror = True, _mirror(model, cfg, sym_plane, _seen_after(mirror, edit))
         if len(state.joints):

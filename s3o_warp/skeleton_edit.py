@@ -758,8 +758,8 @@ def prune_short_bones(lengths, min_length: float, weights, centers, precisions, 
     short bone at a strongly bending joint (a hip, a shoulder) keeps qualifying and is split again and
     again into a knot of ever shorter bones; an upsampled or split bone can also end up owning no vertex
     at all, whatever its length (an inner one's two joints then fall back to its neighbours' borders, which
-    can lie far apart: a leg's top joint at the tail's base). Such bones carry no motion of their own that their neighbours do not, and they clutter
-    the exported rig. A short end bone (no children) that owns vertices is kept: it is a tail tip, an
+    can lie far apart: a leg's top joint at the tail's base). Such bones carry no motion of their own that
+    their neighbours do not, and they clutter the exported rig. A short end bone (no children) that owns vertices is kept: it is a tail tip, an
     ear or a hoof. The pairs (short bone, neighbour) are merged as by :func:`merge_bones` in
     ``"components"`` mode with the paper's weights (temperature 1), so a chain of short bones collapses
     into the long bone it hangs from, whose centre, precision and motion win by their weight mass.

@@ -438,7 +438,7 @@ def test_prune_short_bones_merges_into_the_parent():
     np.testing.assert_allclose(e.centers[0], C[0], atol=1e-12)  # mass 100 vs 5: bone 0 wins outright
     np.testing.assert_allclose(e.precisions[0], Q[0], atol=1e-12)
     assert e.extents.tolist() == [1.0, 1.0]
-    # nothing shorter than the limit: unchanged; a limit of 0 never prunes
+    # nothing shorter than the limit: unchanged; a limit of 0 prunes only empty bones
     assert not sk.prune_short_bones(np.array([1.0, 0.5, 1.0]), 0.2, W, C, Q, np.array([-1, 0, 1])).changed
     assert not sk.prune_short_bones(np.zeros(3), 0.0, W, C, Q, np.array([-1, 0, 1])).changed  # none empty
     # a chain of short bones collapses into the long bone it hangs from; the long child re-hangs on it
