@@ -24,6 +24,9 @@ class DataConfig:
     """Side of the square crop as a multiple of the mask bounding box's longer side."""
     flow_preset: str = "medium"
     """OpenCV DIS optical-flow preset: ultrafast, fast or medium."""
+    flow_finest_scale: int | None = None
+    """DIS's finest pyramid level: 0 = the flow canvas's full resolution, 1 = half (the medium preset's), 2 = a
+    quarter (fast, ultrafast); None = the preset's. The coarser levels underestimate small motions on small canvases."""
     flow_fb_sigma: float = 1.0
     """Forward-backward consistency: confidence = exp(-|f + b(x + f)|^2 / (2 sigma^2)), sigma in crop pixels."""
     fps: float = 30.0

@@ -104,6 +104,9 @@ def check_data_config(cfg: DataConfig) -> None:
         raise ConfigError(
             f"data.flow_preset must be one of {', '.join(FLOW_PRESETS)}, got {cfg.flow_preset!r}"
         )
+    fs = cfg.flow_finest_scale
+    if fs is not None and (isinstance(fs, bool) or not isinstance(fs, int) or not 0 <= fs <= 4):
+        raise ConfigError(f"data.flow_finest_scale must be an integer in [0, 4] or None (the preset's), got {fs!r}")
     if not cfg.flow_fb_sigma > 0:
         raise ConfigError(f"data.flow_fb_sigma must be > 0 (crop pixels), got {cfg.flow_fb_sigma!r}")
     if not cfg.fps > 0:

@@ -114,11 +114,15 @@ class FlowCache:
             yield self.pair(t)
 
 
-def make_dis(preset: str) -> cv2.DISOpticalFlow:
-    """An OpenCV DIS optical-flow object for ``DataConfig.flow_preset``."""
+def make_dis(preset: str, finest_scale: int | None = None) -> cv2.DISOpticalFlow:
+    """An OpenCV DIS optical-flow object for ``DataConfig.flow_preset`` and ``flow_finest_scale`` (None: the
+    preset's finest pyramid level)."""
     if preset not in FLOW_PRESETS:
         raise ConfigError(f"data.flow_preset must be one of {', '.join(FLOW_PRESETS)}, got {preset!r}")
-    return cv2.DISOpticalFlow_create(FLOW_PRESETS[preset])
+    dis = cv2.DISOpticalFlow_create(FLOW_PRESETS[preset])
+    if finest_scale is not None:
+        dis.setFinestScale(int(finest_scale))
+    return dis
 
 
 def flow_canvas(
@@ -231,6 +235,8 @@ def pair_key(seq: Sequence, t: int, cfg: DataConfig) -> str:
         "flow_preset": cfg.flow_preset,
         "flow_fb_sigma": float(cfg.flow_fb_sigma),
     }
+    if cfg.flow_finest_scale is not None:  # absent when unset, so caches made before the setting stay valid
+        payload["flow_finest_scale"] = int(cfg.flow_finest_scale)
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
 
 
@@ -263,8 +269,8 @@ def compute_flow(seq: Sequence, cache_dir: str | Path, cfg: DataConfig | None = 
     Args:
         seq: from :func:`s3o_warp.video.open_sequence`; its crops define the crop coordinates.
         cache_dir: e.g. ``<run>/cache``.
-        cfg: flow settings (``flow_preset``, ``flow_fb_sigma``); defaults to ``seq.cfg``. Its crop
-            settings must equal the sequence's.
+        cfg: flow settings (``flow_preset``, ``flow_finest_scale``, ``flow_fb_sigma``); defaults to ``seq.cfg``.
+            Its crop settings must equal the sequence's.
 
     Returns:
         :class:`FlowCache` with T - 1 pairs.
@@ -285,7 +291,7 @@ def compute_flow(seq: Sequence, cache_dir: str | Path, cfg: DataConfig | None = 
     c2f = np.stack([crop_transform(tuple(b), S, cfg.crop_scale) for b in seq.bboxes])
     files = [cache_dir / f"flow_{pair_key(seq, t, cfg)[:40]}.npy" for t in range(seq.num_frames - 1)]
     todo = [t for t, f in enumerate(files) if not (f.is_file() and _is_valid_file(f, S))]
-    dis = make_dis(cfg.flow_preset) if todo else None
+    dis = make_dis(cfg.flow_preset, cfg.flow_finest_scale) if todo else None
     for t in tqdm(todo, desc=f"{seq.name}: optical flow", unit="pair", leave=False, disable=None):
         arr = pair_flow(seq.image(t), seq.image(t + 1), c2f[t], c2f[t + 1], S, cfg.flow_fb_sigma, dis)
         cache_dir.mkdir(parents=True, exist_ok=True)
