@@ -27,6 +27,9 @@ class DataConfig:
     flow_finest_scale: int | None = None
     """DIS's finest pyramid level: 0 = the flow canvas's full resolution, 1 = half (the medium preset's), 2 = a
     quarter (fast, ultrafast); None = the preset's. The coarser levels underestimate small motions on small canvases."""
+    flow_upsample: float = 1.0
+    """Flow canvas resolution: 1 = the finer of the frame and the crops; 2 = twice as fine (thin legs a few pixels
+    wide then span DIS's patches), at four times the flow's cost."""
     flow_fb_sigma: float = 1.0
     """Forward-backward consistency: confidence = exp(-|f + b(x + f)|^2 / (2 sigma^2)), sigma in crop pixels."""
     fps: float = 30.0
