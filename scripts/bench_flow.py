@@ -105,7 +105,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
     from s3o_warp.config import make_config
-    from s3o_warp.metrics import load_ground_truth
+    from s3o_warp.metrics import load_ground_truth, write_json
 
     if args.crop_size is None:
         args.crop_size = make_config("default").data.crop_size
@@ -132,10 +132,7 @@ def main(argv=None) -> int:
                            **measure(seq, preset, finest, up, args.crop_size, truth)}
                     print(json.dumps(res), flush=True)
                     doc["results"].append(res)
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = dest.with_suffix(f".json.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(doc, indent=2))
-    os.replace(tmp, dest)
+    write_json(doc, dest)
     print(f"wrote {dest}")
     return 0
 
