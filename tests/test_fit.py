@@ -806,11 +806,15 @@ def test_m_step_prunes_short_bones_and_keeps_the_loss(tiny_sequence, tmp_path):
     L = sk.bone_lengths(sk.bone_endpoints(X, W, f.skel.joints, t_r=cfg.skeleton.t_r), X) / sk.size_of(X)
     inner = np.flatnonzero(np.bincount(f.skel.parents[f.skel.parents >= 0], minlength=len(L)) > 0)
     cfg.skeleton.min_bone_length = float(L[inner].min() * 1.001)  # the shortest inner bone is short
+    # bones that own no vertex go too, whatever their length (prune_short_bones); the fit's state may hold some
+    empty = np.bincount(sk.assign_parts(W), minlength=len(L))[: len(L)] == 0
+    empty[inner[np.argmin(L[inner])]] = False
     before, loss0 = _posed_and_loss(f, frames)
     B0 = f.model.num_bones
     assert m_step(f.model, f.opt, data, cfg, f.skel, cfg.skeleton.e1 + 1)
-    assert f.model.num_bones == B0 - 1 and f.skel.history[-1]["operation"] == "prune"
-    assert len(f.skel.parents) == B0 - 1 and (f.skel.parents == -1).sum() == 1
+    B1 = B0 - 1 - int(empty.sum())
+    assert f.model.num_bones == B1 and f.skel.history[-1]["operation"] == "prune"
+    assert len(f.skel.parents) == B1 and (f.skel.parents == -1).sum() == 1
     after, loss1 = _posed_and_loss(f, frames)
     _assert_no_jump(before, after, loss0, loss1)  # measured: 0.08 % of the diagonal, 2.1 % of the loss (9 -> 8 bones)
     # 0 = the paper: nothing is pruned
