@@ -278,8 +278,7 @@ def compute_flow(seq: Sequence, cache_dir: str | Path, cfg: DataConfig | None = 
         seq: from :func:`s3o_warp.video.open_sequence`; its crops define the crop coordinates.
         cache_dir: e.g. ``<run>/cache``.
         cfg: flow settings (``flow_preset``, ``flow_finest_scale``, ``flow_upsample``, ``flow_fb_sigma``); defaults
-            to ``seq.cfg``.
-            Its crop settings must equal the sequence's.
+            to ``seq.cfg``. Its crop settings must equal the sequence's.
 
     Returns:
         :class:`FlowCache` with T - 1 pairs.

@@ -2,18 +2,17 @@
 """Optical-flow benchmark: how much of the true motion the fit's crop flow sees, on synthetic sequences.
 
     python scripts/bench_flow.py --cases fox120 horse [quadruped] [--finest-scales preset 0] [--upsamples 1 2]
-                                 [--presets medium]
-                                 [--crop-size S] [--out-dir DIR]
+                                 [--presets medium] [--crop-size S] [--out-dir DIR]
 
 The true flow comes from the sequence's ``ground_truth/``: each foreground pixel of frame t is a point on a
 face (z-buffer render of the true mesh, :func:`s3o_warp.metrics.render_frames`); the same barycentric point
 on the face at t+1, projected, is where it goes. The measured flow is what a fit uses: the crop flow of
 :func:`s3o_warp.video_flow.pair_flow` (DIS on the pair's canvas), taken back to frame pixels. Per pair and
 setting: ``ratio``, the median over foreground crop pixels of (measured . true) / |true|^2 (1 = the full
-motion; under 1: the motion is underestimated, and a fit then turns its camera too little), the same
+motion; under 1: the motion is underestimated), the same
 weighted by |true|^2 (``ratio_weighted``: dominated by the fastest parts, the legs), and ``epe`` (median
 end-point error, frame pixels). Pixels that move under half a pixel are left out. Results are written to
-``benchmarks/flow-<device>.json`` with the command, the machine and the versions.
+``benchmarks/flow-cpu.json`` with the command, the machine and the versions.
 """
 
 from __future__ import annotations

@@ -64,3 +64,25 @@ def test_a_rows_resamplings_say_which_were_used_and_how(tmp_path):
              "method": "isotropic"}]
     (tmp_path / "log.jsonl").write_text("\n".join(json.dumps(r) for r in recs) + "\n")
     assert bench_fit.resamplings(tmp_path) == ["1200->1180 marching", "1180->1180 refused", "1180->1210 isotropic"]
+
+
+def test_bench_flows_true_flow_is_the_surface_points_motion():
+    """bench_flow's reference: each foreground pixel's surface point, carried to the next frame and projected.
+    A square facing the camera moves across and away: the flow is that of the back-projected pixel centres."""
+    import numpy as np
+
+    import bench_flow
+
+    K = np.array([[100.0, 0, 31.5], [0, 100.0, 23.5], [0, 0, 1]])
+    sq = np.array([[-0.4, -0.3, 4.0], [0.4, -0.3, 4.0], [0.4, 0.3, 4.0], [-0.4, 0.3, 4.0]])
+    d = np.array([0.05, -0.02, 0.3])
+    verts = np.stack([sq, sq + d]).astype(np.float32)
+    faces = np.array([[0, 1, 2], [0, 2, 3]], np.int32)
+    (flow, fg), = bench_flow.true_frame_flow(verts, faces, np.stack([K, K]).astype(np.float32), (48, 64))
+    assert fg.sum() == 20 * 15  # 0.8 x 0.6 at depth 4, focal 100
+    r, c = np.nonzero(fg)
+    X = np.stack([(c - K[0, 2]) / K[0, 0], (r - K[1, 2]) / K[1, 1], np.ones(len(r))], -1) * 4.0 + d
+    want = np.stack([K[0, 0] * X[:, 0] / X[:, 2] + K[0, 2] - c, K[1, 1] * X[:, 1] / X[:, 2] + K[1, 2] - r], -1)
+    np.testing.assert_allclose(flow[r, c], want, atol=1e-3)
+    assert np.abs(want[:, 0]).max() > 1.0 and np.ptp(want[:, 0]) > 1.0  # moves, and not as one translation
+    assert not flow[~fg].any()
