@@ -248,6 +248,9 @@ class MotionConfig:
     (2: acceleration, favours carrying on at constant speed)."""
     w_bone_reg: float = 0.01
     """Weight of the penalty on bone translation magnitude (keeps bones rotating about their centres)."""
+    w_bone_turn: float = 0.0
+    """Weight of the penalty on the bones' mass-weighted mean rotation (``losses.bone_turn_loss``, radians^2; not in
+    the paper): the root turns the body, the bones only articulate it. 0 = off."""
     log_every: int = 10
     """Write a log.jsonl line every this many steps."""
     nan_lr_factor: float = 0.5

@@ -653,6 +653,8 @@ class Fitter:
         )
         terms["smooth"] = (mc.w_smooth, smooth)
         terms["bone_reg"] = (mc.w_bone_reg, (m.bone_t[frames] ** 2).mean())
+        if mc.w_bone_turn > 0:
+            terms["bone_turn"] = (mc.w_bone_turn, L.bone_turn_loss(m.bone_aa[frames], W.detach()))
         return terms, sil, mask
 
     def _joint_tensors(self) -> tuple[torch.Tensor, torch.Tensor]:

@@ -67,6 +67,16 @@ def joint_attachment_loss(bone_rt: torch.Tensor, joints: torch.Tensor, positions
     return (gap**2).sum(-1).mean() / (scale * scale)
 
 
+def bone_turn_loss(bone_aa: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """The bones' turn of the whole body: ``|sum_b m_b a_b^t|^2`` averaged over the frames, with ``a_b^t`` each
+    bone's axis-angle ``bone_aa`` ``(t, B, 3)`` and ``m_b`` its share of the skinning weight ``weights`` ``(N, B)``.
+    Root and bones can turn the mesh alike; this leaves the turn of the whole to the root (the camera), so the
+    bones articulate instead of turning the body back against it."""
+    mass = weights.sum(0) / weights.sum().clamp_min(1e-12)
+    mean = torch.einsum("b,tbi->ti", mass.to(bone_aa), bone_aa)
+    return (mean**2).sum(-1).mean()
+
+
 def soft_iou(sil: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Hard IoU of ``sil > 0.5`` against ``mask > 0.5`` per frame ``(t,)`` (for progress reporting)."""
     a = sil > 0.5
