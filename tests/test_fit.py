@@ -661,8 +661,10 @@ def test_coarse_fit_keeps_the_lifted_depth(tiny_sequence, tmp_path, freeze):
 
 
 def _joint_fitter(tiny_sequence, tmp_path):
-    """A Fitter in its joint phase after 3 steps on frames 0-3 (the bones have some motion)."""
-    cfg = _cfg(**{"coarse.steps": 5, "motion.warmup_steps": 5})
+    """A Fitter in its joint phase after 3 steps on frames 0-3 (the bones have some motion). The M-step tests'
+    cases (a far leg never seen moving, the shortest inner bone) were picked on this state, made with the medium
+    preset's own finest flow level (1), which is pinned so the state stays."""
+    cfg = _cfg(**{"coarse.steps": 5, "motion.warmup_steps": 5, "data.flow_finest_scale": 1})
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
     f.phase = "joint"

@@ -439,7 +439,7 @@ def test_compute_flow_cache_hit(tmp_path):
     assert pair.flow_fwd.shape == (32, 32, 2) and pair.conf_bwd.shape == (32, 32)
     assert isinstance(pair.flow_fwd.base, np.memmap) or isinstance(pair.flow_fwd, np.memmap)
     c2f = seq.crop_to_frame
-    direct = pair_flow(seq.image(1), seq.image(2), c2f[1], c2f[2], 32, 1.0, make_dis("fast"))
+    direct = pair_flow(seq.image(1), seq.image(2), c2f[1], c2f[2], 32, 1.0, make_dis("fast", cfg.flow_finest_scale))
     np.testing.assert_array_equal(np.asarray(pair.flow_fwd), direct[..., 0:2])
 
     seq2 = open_sequence(root, cfg=cfg)
@@ -452,11 +452,12 @@ def test_compute_flow_cache_hit(tmp_path):
     assert (fc3.computed, fc3.hits) == (1, 1)
     fc4 = compute_flow(seq2, cache, DataConfig(crop_size=32, flow_preset="fast", flow_fb_sigma=2.0))
     assert fc4.computed == 2
-    fc5 = compute_flow(seq2, cache, DataConfig(crop_size=32, flow_preset="fast", flow_finest_scale=0))
+    other = 1 if cfg.flow_finest_scale != 1 else 0  # another finest level than the default's
+    fc5 = compute_flow(seq2, cache, DataConfig(crop_size=32, flow_preset="fast", flow_finest_scale=other))
     assert fc5.computed == 2 and not set(fc5.files) & set(fc.files)
     fc6 = compute_flow(seq2, cache, DataConfig(crop_size=32, flow_preset="fast", flow_upsample=2.0))
     assert fc6.computed == 2 and not set(fc6.files) & (set(fc.files) | set(fc5.files))
-    direct = pair_flow(seq2.image(1), seq2.image(2), c2f[1], c2f[2], 32, 1.0, make_dis("fast", 0))
+    direct = pair_flow(seq2.image(1), seq2.image(2), c2f[1], c2f[2], 32, 1.0, make_dis("fast", other))
     np.testing.assert_array_equal(np.asarray(fc5[1].flow_fwd), direct[..., 0:2])
     # a damaged cache file is recomputed, not trusted
     fc.files[0].write_bytes(b"junk")
