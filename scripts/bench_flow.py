@@ -100,7 +100,7 @@ def main(argv=None) -> int:
                     help="data.flow_finest_scale values; 'preset' = None (the preset's own)")
     ap.add_argument("--upsamples", nargs="+", type=float, default=[1.0, 2.0], help="data.flow_upsample values")
     ap.add_argument("--crop-size", type=int, default=None, help="data.crop_size (default: the default preset's)")
-    ap.add_argument("--out-dir", default=str(REPO / "bench_out"), help="where sequences are rendered")
+    ap.add_argument("--out-dir", default=str(REPO / "runs" / "bench"), help="where sequences are rendered (bench_fit.py's)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
     from s3o_warp.config import make_config
