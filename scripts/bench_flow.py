@@ -59,7 +59,7 @@ def true_frame_flow(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, size: t
 def measure(seq_dir: Path, preset: str, finest_scale: int | None, upsample: float, crop_size: int, truth) -> dict:
     """Ratio and end-point error of the crop flow against ``truth`` (from :func:`true_frame_flow`)."""
     from s3o_warp.config import DataConfig
-    from s3o_warp.video import open_sequence
+    from s3o_warp.video import map_points, open_sequence
     from s3o_warp.video_flow import make_dis, pair_flow
 
     cfg = DataConfig(crop_size=crop_size, flow_preset=preset, flow_finest_scale=finest_scale, flow_upsample=upsample)
@@ -72,8 +72,8 @@ def measure(seq_dir: Path, preset: str, finest_scale: int | None, upsample: floa
     ratios, weighted, epes = [], [], []
     for t, (ftrue, fg) in enumerate(truth):
         arr = pair_flow(seq.image(t), seq.image(t + 1), c2f[t], c2f[t + 1], S, cfg.flow_fb_sigma, dis, upsample)
-        x = p * c2f[t][0, 0] + c2f[t][:2, 2]  # crop-t pixels in frame t
-        x2 = (p + arr[..., 0:2]) * c2f[t + 1][0, 0] + c2f[t + 1][:2, 2]  # where the flow sends them, frame t+1
+        x = map_points(p, c2f[t])  # crop-t pixels in frame t
+        x2 = map_points(p + arr[..., 0:2], c2f[t + 1])  # where the flow sends them, frame t+1
         xi, yi = np.round(x[..., 0]).astype(int), np.round(x[..., 1]).astype(int)
         H, W = fg.shape
         ok = (xi >= 0) & (yi >= 0) & (xi < W) & (yi < H)
