@@ -40,8 +40,8 @@ def git_commit() -> str | None:
     a git checkout. A row measured on uncommitted code must not carry the commit's name alone."""
     try:
         sha = subprocess.check_output(["git", "rev-parse", "HEAD"], cwd=REPO, text=True, stderr=subprocess.DEVNULL).strip()
-    except Exception:
-        return None
+    except Exception:  # a copy of the tree without .git (a lent GPU machine) may name its commit in S3O_GIT_COMMIT
+        return os.environ.get("S3O_GIT_COMMIT") or None
     try:
         clean = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", *CODE_PATHS], cwd=REPO,
                                stderr=subprocess.DEVNULL).returncode == 0

@@ -86,3 +86,15 @@ def test_bench_flows_true_flow_is_the_surface_points_motion():
     np.testing.assert_allclose(flow[r, c], want, atol=1e-3)
     assert np.abs(want[:, 0]).max() > 1.0 and np.ptp(want[:, 0]) > 1.0  # moves, and not as one translation
     assert not flow[~fg].any()
+
+
+def test_git_commit_outside_a_checkout(tmp_path, monkeypatch):
+    """A copy of the tree without .git (a lent GPU machine) names its commit through S3O_GIT_COMMIT, else None."""
+    from s3o_warp import provenance
+
+    monkeypatch.setattr(provenance, "REPO", tmp_path)
+    monkeypatch.setenv("GIT_CEILING_DIRECTORIES", str(tmp_path.parent))
+    monkeypatch.delenv("S3O_GIT_COMMIT", raising=False)
+    assert provenance.git_commit() is None
+    monkeypatch.setenv("S3O_GIT_COMMIT", "c" * 40)
+    assert provenance.git_commit() == "c" * 40
