@@ -189,7 +189,7 @@ def test_laplacian_isolated_vertex_and_plane(device):
     quads = [(r * 3 + c, r * 3 + c + 1, (r + 1) * 3 + c + 1, (r + 1) * 3 + c) for r in range(2) for c in range(2)]
     gfaces = torch.tensor([f for a, b, c, d in quads for f in ((a, b, c), (a, c, d))])
     lap = laplacian_loss(gverts.to(device), gfaces.to(device))
-    torch.testing.assert_close(lap.double(), laplacian_loss_reference(gverts.double(), gfaces), atol=1e-6, rtol=1e-5)
+    torch.testing.assert_close(lap.double().cpu(), laplacian_loss_reference(gverts.double(), gfaces), atol=1e-6, rtol=1e-5)
 
 
 def test_laplacian_reference_gradcheck():

@@ -196,7 +196,8 @@ def test_even_resample_carries_linear_attributes(device):
         else:
             assert err.max() > 1e-3
     s = ResampleSettings(target_vertices=700, keep_volume=False)
-    nv, _, new = even_resample(verts, faces, s, attributes=attrs.double())
+    nv, _, new = even_resample(verts.to(device), faces.to(device), s, attributes=attrs.double().to(device))
+    nv, new = nv.cpu(), new.cpu()  # the same device as the float32 run: bit-equal vertices
     assert new.dtype == torch.float64 and nv.dtype == torch.float32
     assert torch.equal(nv, projected[0]) and (new - projected[1].double()).abs().max() < 1e-5
 
