@@ -37,11 +37,16 @@ CODE_PATHS = ("s3o_warp", "scripts", "kernels", "pyproject.toml")
 
 def git_commit() -> str | None:
     """The checkout's HEAD commit, with ``-dirty`` when the code (``CODE_PATHS``) differs from it; None outside
-    a git checkout. A row measured on uncommitted code must not carry the commit's name alone."""
+    a git checkout. A row measured on uncommitted code must not carry the commit's name alone.
+
+    ``S3O_GIT_COMMIT``, when set, names the commit instead: a copy of the tree sent to another machine (a lent
+    GPU) may carry no ``.git``, or a stale one whose HEAD is not the code that runs."""
+    if os.environ.get("S3O_GIT_COMMIT"):
+        return os.environ["S3O_GIT_COMMIT"]
     try:
         sha = subprocess.check_output(["git", "rev-parse", "HEAD"], cwd=REPO, text=True, stderr=subprocess.DEVNULL).strip()
-    except Exception:  # a copy of the tree without .git (a lent GPU machine) may name its commit in S3O_GIT_COMMIT
-        return os.environ.get("S3O_GIT_COMMIT") or None
+    except Exception:
+        return None
     try:
         clean = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", *CODE_PATHS], cwd=REPO,
                                stderr=subprocess.DEVNULL).returncode == 0

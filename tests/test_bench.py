@@ -89,7 +89,7 @@ def test_bench_flows_true_flow_is_the_surface_points_motion():
 
 
 def test_git_commit_outside_a_checkout(tmp_path, monkeypatch):
-    """A copy of the tree without .git (a lent GPU machine) names its commit through S3O_GIT_COMMIT, else None."""
+    """S3O_GIT_COMMIT names the commit of a copied tree (a lent GPU machine: no .git, or a stale one); else None outside a checkout."""
     from s3o_warp import provenance
 
     monkeypatch.setattr(provenance, "REPO", tmp_path)
@@ -97,4 +97,6 @@ def test_git_commit_outside_a_checkout(tmp_path, monkeypatch):
     monkeypatch.delenv("S3O_GIT_COMMIT", raising=False)
     assert provenance.git_commit() is None
     monkeypatch.setenv("S3O_GIT_COMMIT", "c" * 40)
+    assert provenance.git_commit() == "c" * 40
+    monkeypatch.setattr(provenance, "REPO", Path(__file__).resolve().parents[1])  # a checkout: the variable still wins
     assert provenance.git_commit() == "c" * 40
