@@ -247,6 +247,10 @@ class MotionConfig:
     smooth_order: int = 1
     """Temporal smoothness on first differences (1: velocity, favours standing still) or second differences
     (2: acceleration, favours carrying on at constant speed)."""
+    root_smooth_order: int | None = None
+    """smooth_order for the root's rotation alone (None = smooth_order). The root's rotation is an offset from the
+    chosen camera hypothesis' constant turn, so order 1 holds the turn rate at the hypothesis' (a grid of whole
+    degrees per frame); order 2 lets a constant extra rate through and still damps jitter."""
     w_bone_reg: float = 0.01
     """Weight of the penalty on bone translation magnitude (keeps bones rotating about their centres)."""
     w_bone_turn: float = 0.0

@@ -328,6 +328,8 @@ class Fitter:
             raise ConfigError(f"motion.hypothesis_score must be 'total' or 'flow', got {cfg.motion.hypothesis_score!r}")
         if cfg.motion.smooth_order not in (1, 2):
             raise ConfigError(f"motion.smooth_order must be 1 or 2, got {cfg.motion.smooth_order}")
+        if cfg.motion.root_smooth_order not in (None, 1, 2):
+            raise ConfigError(f"motion.root_smooth_order must be 1, 2 or unset, got {cfg.motion.root_smooth_order}")
         if not 0.0 <= cfg.skeleton.merge_quantile < 1.0:
             raise ConfigError(f"skeleton.merge_quantile must be in [0, 1) (0 = every frame), got {cfg.skeleton.merge_quantile}")
         if cfg.motion.crossing_window < 1 or cfg.motion.crossing_ratio <= 0 or cfg.motion.crossing_max_gap < 0:
@@ -646,7 +648,7 @@ class Fitter:
             terms["sym"] = (mc.w_sym, symmetry_loss(m.verts, self.sym_plane))
         k = mc.smooth_order
         smooth = (
-            L.temporal_smoothness(m.root_aa, k)
+            L.temporal_smoothness(m.root_aa, k if mc.root_smooth_order is None else mc.root_smooth_order)
             + L.temporal_smoothness(m.root_t, k)
             + L.temporal_smoothness(m.bone_aa, k)
             + L.temporal_smoothness(m.bone_t, k)

@@ -482,6 +482,26 @@ def test_temporal_smoothness_orders():
         L.temporal_smoothness(par, 3)
 
 
+@pytest.mark.parametrize("root_order, zero", [(None, False), (1, False), (2, True)])
+def test_root_smooth_order_lets_a_constant_extra_turn_through(tiny_sequence, tmp_path, root_order, zero):
+    """The root's rotation is an offset from the hypothesis' constant turn: at root order 2 a constant extra rate
+    costs nothing in the smoothness term (the bones still at order 1); at order 1 (the default's) it does."""
+    cfg = _cfg(**{"coarse.steps": 2, **({"motion.root_smooth_order": root_order} if root_order else {})})
+    data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
+    f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
+    m = f.model
+    T = m.num_frames
+    with torch.no_grad():
+        for p in (m.root_aa, m.root_t, m.bone_aa, m.bone_t):
+            p.zero_()
+        m.root_aa[:, 1] = 0.01 * torch.arange(T, dtype=torch.float32)  # 0.57 degrees per frame more turn
+    terms, _, _ = f.motion_losses(torch.arange(0, 3))
+    smooth = float(terms["smooth"][1])
+    assert (smooth == pytest.approx(0.0, abs=1e-12)) if zero else smooth == pytest.approx(0.01**2 / 3, rel=1e-4)
+    with pytest.raises(ConfigError, match="root_smooth_order"):
+        Fitter(data, coarse_model(data, cfg), _cfg(**{"motion.root_smooth_order": 3}), tmp_path, torch.device("cpu"))
+
+
 @pytest.mark.parametrize("a", [0.0, 1.0])
 def test_sweep_seeds_new_frames_at_constant_velocity(tiny_sequence, tmp_path, a):
     cfg = _cfg(**{"coarse.steps": 2, "motion.sweep_extrapolate": a})
