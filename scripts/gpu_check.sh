@@ -19,7 +19,7 @@ nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.sm --format=csv 2
 $PY -c "import torch, warp as wp; wp.init(); print('torch', torch.__version__, torch.cuda.get_device_name(0)); print('warp', wp.__version__, wp.get_cuda_devices())" 2>&1 | tee -a "$OUT/device.txt"
 
 stamp "CUDA tests"
-timeout "${TESTS_S:-200}" $PY -m pytest -q -k cuda -p no:cacheprovider --continue-on-collection-errors tests 2>&1 | tee "$OUT/tests-cuda.log" | tail -25
+timeout "${TESTS_S:-200}" $PY -m pytest -q -k cuda -p no:cacheprovider --continue-on-collection-errors -rfEs tests 2>&1 | tee "$OUT/tests-cuda.log" | tail -25
 stamp "tests rc=${PIPESTATUS[0]}"
 
 stamp "kernel benchmark"
@@ -28,8 +28,9 @@ cp benchmarks/kernels-cuda.json "$OUT/" 2>/dev/null
 
 for case in $CASES; do
   stamp "fit $case"
-  timeout "${FIT_S:-240}" $PY scripts/bench_fit.py --device cuda --cases "$case" --out-dir runs/gpu 2>"$OUT/fit-$case.err" | tail -3
-  tail -5 "$OUT/fit-$case.err"
+  echo "== $case" >>"$OUT/fits.err"  # one log for all cases: few files under OUT (some hosts fetch only a handful)
+  timeout "${FIT_S:-240}" $PY scripts/bench_fit.py --device cuda --cases "$case" --out-dir runs/gpu 2>>"$OUT/fits.err" | tail -3
+  tail -5 "$OUT/fits.err"
   cp benchmarks/fit-cuda.json "$OUT/" 2>/dev/null
 done
 stamp "done"
