@@ -96,6 +96,8 @@ class GroundTruth:
         K: float32 (T, 3, 3) intrinsics, or None (not needed for 3D metrics).
         image_size: (H, W) or None.
         source: the file they were read from.
+        tips: per end joint's name, float32 (T, 3): where its bone ends (the ``<joint>_tip`` keypoint's vertex,
+            ``s3o_warp.synth``: a hoof's sole, a toe, an ear's tip); empty when the file has none.
     """
 
     verts: np.ndarray
@@ -107,6 +109,7 @@ class GroundTruth:
     K: np.ndarray | None
     image_size: tuple[int, int] | None
     source: Path
+    tips: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -286,7 +289,9 @@ def load_ground_truth(gt) -> GroundTruth:
     Keys read: ``verts`` (T, V, 3) camera space and ``faces`` (F, 3) (required); optional
     ``joints`` (T, J, 3) camera space, ``joint_parents`` (J,), ``joint_names`` (J,),
     ``joint_deforming`` or ``deforming`` (J,) bool (non-deforming joints are dropped when present),
-    ``frame_names`` (T,), ``K`` (T, 3, 3) or (3, 3), ``image_size`` (2,). Unknown keys are ignored.
+    ``frame_names`` (T,), ``K`` (T, 3, 3) or (3, 3), ``image_size`` (2,), ``keypoint_names`` (K,) with
+    ``keypoint_vertex`` (K,) (each ``<joint>_tip`` of a joint kept becomes that joint's entry of ``tips``).
+    Unknown keys are ignored.
     Without ``frame_names``, :func:`evaluate_run` names the frames by the sorted mask stems of the
     sequence when their count matches (``s3o_warp.synth`` writes ``masks/000000.png`` ...), else by
     order.
@@ -334,7 +339,15 @@ def load_ground_truth(gt) -> GroundTruth:
             raise InputError(f"{path}: 'frame_names' has {len(fnames)} entries but 'verts' has {T} frames")
     K = _intrinsics(d["K"], T, path) if "K" in d else None
     size = _image_size(d["image_size"], path) if "image_size" in d else None
-    return GroundTruth(verts, faces.astype(np.int32), joints, names or [], parents, fnames, K, size, path)
+    tips = {}
+    if names and "keypoint_names" in d and "keypoint_vertex" in d:
+        kv = np.asarray(d["keypoint_vertex"]).reshape(-1)
+        for kn, v in zip((str(s) for s in d["keypoint_names"].reshape(-1)), kv):
+            if kn.endswith("_tip") and kn[:-4] in names:
+                if not 0 <= int(v) < verts.shape[1]:
+                    raise InputError(f"{path}: keypoint {kn!r} names vertex {int(v)}, but there are {verts.shape[1]}")
+                tips[kn[:-4]] = verts[:, int(v)]
+    return GroundTruth(verts, faces.astype(np.int32), joints, names or [], parents, fnames, K, size, path, tips)
 
 
 def read_json(path, what: str, fix: str):
@@ -996,7 +1009,8 @@ def chain_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, chain, diag: 
 
 def limb_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, gt_parents: np.ndarray, diag: np.ndarray,
                   sim: Similarity | None = None, names: list[str] | None = None, tol: float = 0.05,
-                  min_joints: int = 2, branch: bool = True, min_separation: float = 0.0) -> dict:
+                  min_joints: int = 2, branch: bool = True, min_separation: float = 0.0,
+                  tips: dict[int, np.ndarray] | None = None) -> dict:
     """Does every ground-truth limb have a learned joint chain along it?
 
     A limb (see :func:`gt_limbs`) counts as covered when, in at least half of the frames, ``min_joints``
@@ -1007,15 +1021,25 @@ def limb_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, gt_parents: np
     base, not from the pelvis), so a joint where the limb meets the body, or a neighbouring limb's, does not
     count for it. ``min_separation`` > 0: joints closer than that along the chain (a fraction of its length) to
     a nearer one count once (:func:`chain_coverage`), so a knot at the top of a leg does not pass for a chain.
+    ``tips`` (end joint index -> (T, 3) points): a limb whose end joint has one goes on to it, so its last bone
+    is part of it (a joint's position is where its bone starts: a horse's lower-leg joint is its knee, and a
+    third of the leg lies between it and the hoof).
     """
+    gj = np.asarray(gt_joints, dtype=np.float64)
+    J = gj.shape[1]
     out = []
     for limb in gt_limbs(gt_parents, names):
         chain = limb["joints"] if branch else limb["joints"][1:]
-        c = chain_coverage(pred_joints, gt_joints, chain, diag, sim, tol, min_joints, min_separation)
-        out.append({"limb": limb["name"], "gt_joints": len(limb["joints"]), **c})
+        tip = (tips or {}).get(limb["joints"][-1])
+        if tip is not None:  # the end joint's tip as one more point of the polyline
+            c = chain_coverage(pred_joints, np.concatenate([gj, np.asarray(tip, np.float64)[:, None]], 1),
+                               list(chain) + [J], diag, sim, tol, min_joints, min_separation)
+        else:
+            c = chain_coverage(pred_joints, gj, chain, diag, sim, tol, min_joints, min_separation)
+        out.append({"limb": limb["name"], "gt_joints": len(limb["joints"]), "to_tip": tip is not None, **c})
     n = len(out)
     return {"limbs": out, "covered": sum(o["covered"] for o in out), "total": n, "tol": tol, "min_joints": min_joints,
-            "branch": branch, "min_separation": min_separation}
+            "branch": branch, "min_separation": min_separation, "to_tip": bool(tips)}
 
 
 def empty_bones(weights: np.ndarray) -> dict:
@@ -1105,7 +1129,7 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
                  threshold_frame: Literal["reference", "target"] = "reference",
                  n_points: int = 5000, fscore_ratio: float = 0.02, icp_iters: int = 50, seed: int = 0,
                  chunk: int = 8, device: str = "cpu", progress: bool = True, rasterizer=None,
-                 chain_separation: float = 0.15, framewise_limbs: bool = True) -> dict:
+                 chain_separation: float = 0.15, framewise_limbs: bool = True, limb_tips: bool = True) -> dict:
     """Score a run against a sequence: mask IoU, PCK-T, 3D shape and skeleton, whatever is available.
 
     Args:
@@ -1128,6 +1152,8 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
         framewise_limbs: also ``skeleton.limbs_framewise``: ``limbs_distinct`` with every frame aligned on its
             own (:func:`frame_similarities`), the rig's joints apart from each frame's root pose and depth error;
             ``frame_scale`` lists each frame's scale over the sequence's.
+        limb_tips: the limb counts follow each limb on to its end joint's tip where the ground truth has one
+            (:attr:`GroundTruth.tips`, :func:`limb_coverage`'s ``tips``); false: they stop at the end joint.
         chunk: frames per render call.
         device: torch device of the renders.
         progress: tqdm bars.
@@ -1239,18 +1265,20 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
             diag = bbox_diagonal(gt.verts[gi])
             result["skeleton"] = skeleton_distance(pred.joints_cam[pi], gt.joints[gi], diag, sim)
             if gt.joint_parents is not None and len(gt.joint_parents) == gt.joints.shape[1]:
+                tips = ({gt.joint_names.index(n): p[gi] for n, p in gt.tips.items() if n in gt.joint_names}
+                        if limb_tips else None)
                 result["skeleton"]["limbs"] = limb_coverage(pred.joints_cam[pi], gt.joints[gi], gt.joint_parents, diag,
-                                                            sim, gt.joint_names)
+                                                            sim, gt.joint_names, tips=tips)
                 # the stricter reading: the limb's own joints, joints at one place along it (a knot) counted once
                 result["skeleton"]["limbs_distinct"] = limb_coverage(
                     pred.joints_cam[pi], gt.joints[gi], gt.joint_parents, diag, sim, gt.joint_names, branch=False,
-                    min_separation=chain_separation)
+                    min_separation=chain_separation, tips=tips)
                 if framewise_limbs:  # the same count on the rig alone: each frame aligned on its own
                     sims = frame_similarities(pred.verts_cam[pi], pred.faces, gt.verts[gi], gt.faces, sim, seed=seed)
                     aligned = np.stack([f(j) for f, j in zip(sims, pred.joints_cam[pi])])
                     result["skeleton"]["limbs_framewise"] = {
                         **limb_coverage(aligned, gt.joints[gi], gt.joint_parents, diag, None, gt.joint_names,
-                                        branch=False, min_separation=chain_separation),
+                                        branch=False, min_separation=chain_separation, tips=tips),
                         "frame_scale": [float(f.scale / sim.scale) for f in sims]}
         if gt.joints is not None and gt.joint_parents is not None and len(gt.joint_parents) == gt.joints.shape[1]:
             if pred.weights is not None:

@@ -38,6 +38,9 @@ def main(argv=None) -> int:
     ap.add_argument("--chain-separation", type=float, default=0.15,
                     help="limbs of distinct joints: joints closer than this fraction of the limb's length along it "
                          "count once")
+    ap.add_argument("--no-limb-tips", action="store_true",
+                    help="limb counts stop at each limb's end joint instead of going on to its tip (the ground "
+                         "truth's <joint>_tip keypoint; the reading of rows before session 30)")
     ap.add_argument("--out", help="where to write metrics.json (default: RUN_DIR/metrics.json)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
@@ -46,7 +49,7 @@ def main(argv=None) -> int:
             args.run, args.sequence, keypoints=args.keypoints, ground_truth=args.ground_truth, masks=args.masks,
             object_id=args.object_id, alpha=args.alpha, threshold_frame=args.threshold_frame,
             n_points=args.points, seed=args.seed, chunk=args.chunk, device=args.device,
-            chain_separation=args.chain_separation,
+            chain_separation=args.chain_separation, limb_tips=not args.no_limb_tips,
         )
         run = Path(args.run)
         out = Path(args.out) if args.out else (run if run.is_dir() else run.parent) / "metrics.json"

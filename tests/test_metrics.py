@@ -512,6 +512,43 @@ def test_ground_truth_drops_non_deforming_joints(tmp_path):
     np.testing.assert_array_equal(gt.joints[:, 1], np.arange(18.0).reshape(2, 3, 3)[:, 2])
 
 
+def test_ground_truth_reads_end_joints_tips(tmp_path):
+    verts = np.arange(2 * 4 * 3, dtype=np.float32).reshape(2, 4, 3)
+    np.savez(tmp_path / "gt.npz", verts=verts, faces=np.array([[0, 1, 2]]), joints=np.zeros((2, 3, 3)),
+             joint_names=np.array(["a", "ik", "b"]), joint_deforming=np.array([True, False, True]),
+             keypoint_names=np.array(["b_tip", "ik_tip", "a", "zz_tip"]), keypoint_vertex=np.array([3, 1, 0, 2]))
+    gt = M.load_ground_truth(tmp_path)
+    assert list(gt.tips) == ["b"]  # a kept joint's tip; not a dropped joint's, a plain keypoint or an unknown name
+    np.testing.assert_array_equal(gt.tips["b"], verts[:, 3])
+    np.savez(tmp_path / "gt.npz", verts=verts, faces=np.array([[0, 1, 2]]), joints=np.zeros((2, 1, 3)),
+             joint_names=np.array(["b"]), keypoint_names=np.array(["b_tip"]), keypoint_vertex=np.array([4]))
+    with pytest.raises(InputError, match="'b_tip' names vertex 4, but there are 4"):
+        M.load_ground_truth(tmp_path)
+
+
+def test_limb_coverage_goes_on_to_the_end_joints_tip():
+    from s3o_warp.metrics import limb_coverage
+
+    # a body 0 -> 1 and a leg 1 -> 2 whose last bone ends 2 below j2 (a hoof below the knee)
+    parents = np.array([-1, 0, 1])
+    gt = np.repeat(np.array([[[0, 0, 5], [1, 0, 5], [1, -1, 5]]], float), 2, 0)
+    tip = np.repeat(np.array([[1, -3, 5]], float), 2, 0)
+    diag = np.full(2, 4.0)
+    pred = np.repeat(np.array([[[1, -0.5, 5], [1, -2.5, 5]]]), 2, 0)  # a joint on the leg's bone, one on its last
+    names = ["body", "hip", "knee"]
+    short = limb_coverage(pred, gt, parents, diag, names=names, branch=False)
+    assert not short["to_tip"] and not short["limbs"][0]["to_tip"]
+    assert not short["limbs"][0]["covered"] and abs(short["limbs"][0]["tol_needed"] - 1.5 / 4) < 1e-12
+    full = limb_coverage(pred, gt, parents, diag, names=names, branch=False, tips={2: tip})
+    assert full["to_tip"] and full["limbs"][0]["to_tip"] and full["limbs"][0]["covered"]
+    assert full["limbs"][0]["tol_needed"] == 0.0
+    # the tip lengthens the chain hip -> knee -> tip to 3: its joints sit at 0.5 / 3 and 2.5 / 3 along it
+    assert abs(full["limbs"][0]["median_span"] - 2 / 3) < 1e-12
+    # a tip for another joint leaves the limb as it was
+    other = limb_coverage(pred, gt, parents, diag, names=names, branch=False, tips={1: tip})
+    assert not other["limbs"][0]["to_tip"] and not other["limbs"][0]["covered"]
+
+
 def test_evaluate_script_bad_input_is_one_line(tmp_path, capsys):
     assert _evaluate_main()([str(tmp_path / "x.usdc"), "--sequence", str(tmp_path)]) == 2
     err = capsys.readouterr().err
