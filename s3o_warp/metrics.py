@@ -1332,7 +1332,8 @@ def format_table(metrics: dict) -> str:
         if "limbs" in m:
             c = m["limbs"]
             rows.append(("limbs with a joint chain", f"{c['covered']}/{c['total']}",
-                         f"{c['min_joints']}+ joints within {100 * c['tol']:g} % of the diagonal in half the frames"))
+                         f"{c['min_joints']}+ joints within {100 * c['tol']:g} % of the diagonal in half the frames"
+                         + (", each limb on to its end's tip" if c.get("to_tip") else "")))
         if "limbs_distinct" in m:
             c = m["limbs_distinct"]
             rows.append(("... of distinct joints", f"{c['covered']}/{c['total']}",

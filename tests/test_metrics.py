@@ -372,6 +372,24 @@ def test_limbs_framewise_counts_the_rig_apart_from_each_frames_pose(scene, tmp_p
     assert "limbs_framewise" not in off
 
 
+def test_rescore_script_scores_runs_again_beside_their_own_metrics(scene, tmp_path, capsys):
+    import shutil
+
+    main = runpy.run_path(str(REPO / "scripts" / "rescore_limbs.py"), run_name="rescore")["main"]
+    run = tmp_path / "run"
+    shutil.copytree(scene["runs"]["self"], run)
+    before = {"skeleton": {"limbs": {"covered": 0, "total": 1, "limbs": [{"limb": "foot", "tol_needed": 0.3}]}}}
+    (run / "metrics.json").write_text(json.dumps(before))
+    out = tmp_path / "rescore.json"
+    assert main([f"{run}:{scene['seq']}", "--out", str(out)]) == 0
+    row = json.loads(out.read_text())["results"][0]
+    assert row["before"]["limbs"] == {"covered": 0, "total": 1, "to_tip": False, "tol_needed": {"foot": 0.3}}
+    assert row["now"]["limbs"]["covered"] == 1 and row["now"]["limbs_framewise"]["covered"] == 1  # the truth itself
+    assert json.loads((run / "metrics.json").read_text()) == before  # the run's own file is left as it was
+    assert (run / "metrics-rescored.json").is_file()
+    assert main([str(run), "--out", str(out)]) == 2 and "RUN_DIR:SEQUENCE_DIR" in capsys.readouterr().err
+
+
 def test_frozen_prediction_scores_clearly_lower(scene):
     m = M.evaluate_run(scene["runs"]["frozen"], scene["seq"], progress=False, n_points=2000)
     iou = m["mask_iou"]["per_frame"]
