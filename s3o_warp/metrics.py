@@ -1031,15 +1031,13 @@ def limb_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, gt_parents: np
     for limb in gt_limbs(gt_parents, names):
         chain = limb["joints"] if branch else limb["joints"][1:]
         tip = (tips or {}).get(limb["joints"][-1])
-        if tip is not None:  # the end joint's tip as one more point of the polyline
-            c = chain_coverage(pred_joints, np.concatenate([gj, np.asarray(tip, np.float64)[:, None]], 1),
-                               list(chain) + [J], diag, sim, tol, min_joints, min_separation)
-        else:
-            c = chain_coverage(pred_joints, gj, chain, diag, sim, tol, min_joints, min_separation)
+        points, chain = (gj, chain) if tip is None else (  # the end joint's tip as one more point of the polyline
+            np.concatenate([gj, np.asarray(tip, np.float64)[:, None]], 1), list(chain) + [J])
+        c = chain_coverage(pred_joints, points, chain, diag, sim, tol, min_joints, min_separation)
         out.append({"limb": limb["name"], "gt_joints": len(limb["joints"]), "to_tip": tip is not None, **c})
     n = len(out)
     return {"limbs": out, "covered": sum(o["covered"] for o in out), "total": n, "tol": tol, "min_joints": min_joints,
-            "branch": branch, "min_separation": min_separation, "to_tip": bool(tips)}
+            "branch": branch, "min_separation": min_separation, "to_tip": any(o["to_tip"] for o in out)}
 
 
 def empty_bones(weights: np.ndarray) -> dict:

@@ -21,7 +21,7 @@ import sys
 from pathlib import Path
 
 from s3o_warp.errors import InputError
-from s3o_warp.metrics import evaluate_run, write_json, write_metrics
+from s3o_warp.metrics import evaluate_run, read_json, write_json, write_metrics
 from s3o_warp.provenance import REPO, cpu_name, git_commit, versions
 
 COUNTS = ("limbs", "limbs_distinct", "limbs_framewise")
@@ -52,7 +52,8 @@ def main(argv=None) -> int:
             return 2
         run, seq = Path(run), Path(seq)
         try:
-            before = json.loads((run / "metrics.json").read_text()) if (run / "metrics.json").is_file() else {}
+            before = read_json(run / "metrics.json", "the run's metrics", "rerun scripts/evaluate.py on it, or move the "
+                               "broken file away") if (run / "metrics.json").is_file() else {}
             now = evaluate_run(run, seq, progress=False)
         except InputError as e:
             print(f"error: {e}", file=sys.stderr)

@@ -388,6 +388,8 @@ def test_rescore_script_scores_runs_again_beside_their_own_metrics(scene, tmp_pa
     assert json.loads((run / "metrics.json").read_text()) == before  # the run's own file is left as it was
     assert (run / "metrics-rescored.json").is_file()
     assert main([str(run), "--out", str(out)]) == 2 and "RUN_DIR:SEQUENCE_DIR" in capsys.readouterr().err
+    (run / "metrics.json").write_text("{not json")
+    assert main([f"{run}:{scene['seq']}", "--out", str(out)]) == 2 and "not valid JSON" in capsys.readouterr().err
 
 
 def test_frozen_prediction_scores_clearly_lower(scene):
@@ -564,7 +566,7 @@ def test_limb_coverage_goes_on_to_the_end_joints_tip():
     assert abs(full["limbs"][0]["median_span"] - 2 / 3) < 1e-12
     # a tip for another joint leaves the limb as it was
     other = limb_coverage(pred, gt, parents, diag, names=names, branch=False, tips={1: tip})
-    assert not other["limbs"][0]["to_tip"] and not other["limbs"][0]["covered"]
+    assert not other["to_tip"] and not other["limbs"][0]["to_tip"] and not other["limbs"][0]["covered"]
 
 
 def test_evaluate_script_bad_input_is_one_line(tmp_path, capsys):
