@@ -143,6 +143,9 @@ class MotionConfig:
     hypothesis_all_frames: bool = True
     """Score each hypothesis, after its steps, by one pass over every frame (false: the mean of its last third
     of training windows, which only sees the frames those random windows happened to hold)."""
+    hypothesis_window: int = 0
+    """Fit and score each hypothesis on the frames within this many of the canonical frame only, where the coarse
+    shape (lifted from that frame) is seen from about the view it was made from; 0 = every frame."""
     turn_rate: float | None = None
     """Known camera turn rate about the object's vertical axis, degrees per frame: used as is, no hypotheses scored."""
     warmup_sweep: float = 0.5

@@ -35,7 +35,7 @@ CHECKPOINT_VERSION = 2
 BRANCH_CHECKPOINT = "branch.pt"  # in <run>/checkpoints: the state before the first M-step that reads t_o
 BRANCH_LOG = "branch.log.jsonl"
 BRANCH_MAY_DIFFER = ("skeleton.t_o", "skeleton.merge_quantile", "skeleton.t_u", "skeleton.split_end_bones",
-                     "motion.polish_steps", "motion.polish_lr_factor")
+                     "skeleton.t_d", "skeleton.min_bone_length", "motion.polish_steps", "motion.polish_lr_factor")
 """The settings a branched fit may change: the refinement and the polish after the joint phase read them only
 after the branch (and output.*, preset: no effect on the fit)."""
 EARLIER_DEFAULTS = {"motion.principal_point": "frame"}
@@ -326,6 +326,9 @@ class Fitter:
         self.data, self.cfg, self.run_dir, self.device = data, cfg, Path(run_dir), device
         if cfg.motion.hypothesis_score not in ("total", "flow"):  # refused before any work is done
             raise ConfigError(f"motion.hypothesis_score must be 'total' or 'flow', got {cfg.motion.hypothesis_score!r}")
+        if cfg.motion.hypothesis_window < 0:
+            raise ConfigError(f"motion.hypothesis_window must be >= 0 (frames either side of the canonical one; 0 = "
+                              f"every frame), got {cfg.motion.hypothesis_window}")
         if cfg.motion.smooth_order not in (1, 2):
             raise ConfigError(f"motion.smooth_order must be 1 or 2, got {cfg.motion.smooth_order}")
         if cfg.motion.root_smooth_order not in (None, 1, 2):
@@ -573,12 +576,13 @@ class Fitter:
             return frames
         return self._random_window()
 
-    def _random_window(self) -> torch.Tensor:
-        """A window of consecutive frames around a uniformly drawn frame (clamped, so ends are covered too)."""
-        T = self.data.num_frames
-        n = min(self.cfg.motion.batch_frames, T)
-        centre = int(torch.randint(0, T, (1,), generator=self.gen))
-        start = min(max(centre - n // 2, 0), T - n)
+    def _random_window(self, lo: int = 0, hi: int | None = None) -> torch.Tensor:
+        """A window of consecutive frames around a uniformly drawn frame of [lo, hi) (clamped, so ends are
+        covered too)."""
+        hi = self.data.num_frames if hi is None else hi
+        n = min(self.cfg.motion.batch_frames, hi - lo)
+        centre = lo + int(torch.randint(0, hi - lo, (1,), generator=self.gen))
+        start = min(max(centre - n // 2, lo), hi - n)
         return torch.arange(start, start + n, device=self.device)
 
     @torch.no_grad()
@@ -842,6 +846,8 @@ class Fitter:
         if 0.0 not in rates:
             rates = np.append(rates, 0.0)
         gen_state = self.gen.get_state()
+        w = mc.hypothesis_window  # the frames near the canonical one, or all
+        lo, hi = (0, T) if w <= 0 else (max(0, c - w), min(T, c + w + 1))
 
         def apply(rate: float) -> None:
             m.load_state_dict(base)
@@ -861,7 +867,7 @@ class Fitter:
             """``steps`` warm-up steps on random windows from the current state, then this hypothesis' score."""
             losses = []  # only ranked on when not scoring over all frames (each float() is a device sync)
             for _ in range(steps):
-                frames = self._random_window()
+                frames = self._random_window(lo, hi)
                 self.opt.zero_grad(set_to_none=True)
                 terms, _, _ = self.motion_losses(frames)
                 total = sum(w * v for w, v in terms.values())
@@ -876,7 +882,7 @@ class Fitter:
                     losses.append(float(score.detach()))
             self.step = 0
             if mc.hypothesis_all_frames or not losses:
-                terms = self.mean_terms()
+                terms = self.mean_terms(lo, hi)
                 key = "flow" if mc.hypothesis_score == "flow" and "flow" in terms else None
                 return terms[key] if key else sum(terms.values())
             return float(np.mean(losses[-max(1, len(losses) // 3):]))
@@ -920,13 +926,14 @@ class Fitter:
         return best
 
     @torch.no_grad()
-    def mean_terms(self) -> dict[str, float]:
-        """Every weighted motion loss term averaged over windows that cover all frames (no step taken)."""
-        T = self.data.num_frames
-        n = min(self.cfg.motion.batch_frames, T)
-        starts = list(range(0, T - n + 1, max(n - 1, 1)))  # consecutive windows share a frame: every pair
-        if starts[-1] != T - n:
-            starts.append(T - n)
+    def mean_terms(self, lo: int = 0, hi: int | None = None) -> dict[str, float]:
+        """Every weighted motion loss term averaged over windows that cover frames [lo, hi) (default all; no
+        step taken)."""
+        hi = self.data.num_frames if hi is None else hi
+        n = min(self.cfg.motion.batch_frames, hi - lo)
+        starts = list(range(lo, hi - n + 1, max(n - 1, 1)))  # consecutive windows share a frame: every pair
+        if starts[-1] != hi - n:
+            starts.append(hi - n)
         acc: dict[str, list[float]] = {}
         for s in starts:
             terms, _, _ = self.motion_losses(torch.arange(s, s + n, device=self.device))
@@ -1222,7 +1229,7 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
     ``sequence_dir`` is a sequence folder, a DAVIS root (with ``name``), a DAVIS sequence folder, or a
     video file / frame folder with a separate ``masks`` folder (see ``s3o_warp.video.open_sequence``).
     ``branch_from``: a finished or running fit of the same sequence whose settings differ from ``cfg`` only in
-    ``skeleton.t_o``, ``merge_quantile``, ``t_u``, ``split_end_bones`` or ``motion.polish_*`` (:data:`BRANCH_MAY_DIFFER`: read only from the branch on); the fit starts from its ``checkpoints/branch.pt`` (the state just
+    ``skeleton.t_o``, ``merge_quantile``, ``t_u``, ``split_end_bones``, ``t_d``, ``min_bone_length`` or ``motion.polish_*`` (:data:`BRANCH_MAY_DIFFER`: read only from the branch on); the fit starts from its ``checkpoints/branch.pt`` (the state just
     before the first merge) and its cached flow, so a t_o study pays for the shared part once (the rest of the run directory is this fit's own). With
     ``resume`` a checkpoint of ``out_dir`` itself comes first.
     """

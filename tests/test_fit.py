@@ -322,7 +322,7 @@ def test_a_branch_refuses_other_settings_and_a_run_without_its_checkpoint(tiny_s
     over = {"coarse.steps": 2, "motion.warmup_steps": 2, "motion.steps": 8, "skeleton.epochs": 4, "skeleton.e1": 1}
     a = tmp_path / "a"
     fit(tiny_sequence, a, _cfg(**over), torch.device("cpu"))
-    with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o, skeleton.merge_quantile, skeleton.t_u, skeleton.split_end_bones, motion.polish_steps, motion.polish_lr_factor may differ"):
+    with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o, skeleton.merge_quantile, skeleton.t_u, skeleton.split_end_bones, skeleton.t_d, skeleton.min_bone_length, motion.polish_steps, motion.polish_lr_factor may differ"):
         fit(tiny_sequence, tmp_path / "b", _cfg(**over, **{"motion.lr_bones": 0.123}), torch.device("cpu"), branch_from=a)
     assert not (tmp_path / "b").exists()  # refused before any work
     # a run from before a setting existed ran with its default: that setting does not count as a difference
@@ -466,6 +466,30 @@ def test_hypotheses_are_scored_on_every_frame(tiny_sequence, tmp_path, monkeypat
         with torch.no_grad():
             want = np.mean([float(w * v) for w, v in (orig(f, fr)[0][k] for fr in windows)])
         assert terms[k] == pytest.approx(want, rel=1e-6)
+
+
+def test_hypothesis_window_fits_and_scores_only_frames_near_the_canonical_one(tiny_sequence, tmp_path, monkeypatch):
+    """motion.hypothesis_window=w: every training window and the score's windows lie in [c - w, c + w], and the
+    score covers all of it; a negative window is refused."""
+    cfg = _cfg(**{"coarse.steps": 2, "motion.batch_frames": 3, "motion.hypotheses": 3, "motion.hypothesis_steps": 3,
+                  "motion.hypothesis_refine": 0, "motion.hypothesis_window": 1})
+    data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
+    coarse = coarse_model(data, cfg)
+    f = Fitter(data, coarse, cfg, tmp_path, torch.device("cpu"))
+    seen, orig = [], Fitter.motion_losses
+
+    def record(self, frames):
+        seen.append(frames.tolist())
+        return orig(self, frames)
+
+    monkeypatch.setattr(Fitter, "motion_losses", record)
+    f.select_hypothesis()
+    T, c = data.num_frames, coarse.canonical
+    near = set(range(max(0, c - 1), min(T, c + 2)))
+    assert len(near) < T  # the tiny sequence has frames outside the window
+    assert {t for w in seen for t in w} == near
+    with pytest.raises(ConfigError, match="motion.hypothesis_window"):
+        Fitter(data, coarse, _cfg(**{"motion.hypothesis_window": -1}), tmp_path, torch.device("cpu"))
 
 
 def test_temporal_smoothness_orders():
