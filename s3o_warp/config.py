@@ -281,8 +281,9 @@ class SkeletonConfig:
     """Epoch of the one skeleton upsampling; before it: shifting and growth, after it: merge and joints."""
     t_o: float = 0.95
     """Merge bones whose flow-derived motion directions have cosine > t_o in every frame (0.99 finer, 0.90 coarser)."""
-    t_d: float = 0.25
-    """Create a joint in a bone whose length varies over frames by more than t_d of its median length."""
+    t_d: float = 0.15
+    """Create a joint in a bone whose length varies over frames by more than t_d of its median length (0.25 until
+    session 31; 0.15 gives the legs more joints: docs/results.md, "Session 31")."""
     t_r: float = 0.4
     """Joint position: mean of the vertices with both bones' weights >= t_r."""
     split_end_bones: bool = True
