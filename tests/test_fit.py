@@ -308,8 +308,9 @@ def test_a_fit_branched_at_another_t_o_ends_where_a_fresh_fit_at_it_ends(tiny_se
     secs = [r["seconds"] for r in rows]
     assert secs == sorted(secs)
     assert json.loads((c / "skeleton.json").read_text())["bones"] == json.loads((b / "skeleton.json").read_text())["bones"]
-    # merge_quantile and the polish after the joint phase are read only after the branch too
-    other = {**over, "skeleton.t_o": 0.5, "skeleton.merge_quantile": 0.5, "motion.polish_steps": 3}
+    # merge_quantile, joint creation's t_d, the short-bone limit and the polish are read only after the branch too
+    other = {**over, "skeleton.t_o": 0.5, "skeleton.merge_quantile": 0.5, "skeleton.t_d": 0.05,
+             "skeleton.min_bone_length": 0.03, "motion.polish_steps": 3}
     fit(tiny_sequence, tmp_path / "d", _cfg(**other), torch.device("cpu"))
     fit(tiny_sequence, tmp_path / "e", _cfg(**other), torch.device("cpu"), branch_from=a)
     assert [json.loads(line)["phase"] for line in open(tmp_path / "e" / "log.jsonl")].count("polish") == 3
