@@ -382,6 +382,9 @@ class Fitter:
         if cfg.skeleton.min_section_vertices < 1:
             raise ConfigError(f"skeleton.min_section_vertices must be >= 1 (vertices each new bone of a split owns), "
                               f"got {cfg.skeleton.min_section_vertices}")
+        if cfg.skeleton.joint_samples < 1:
+            raise ConfigError(f"skeleton.joint_samples must be >= 1 (1 = joints over the vertices, k = over each face's "
+                              f"k x k grid), got {cfg.skeleton.joint_samples}")
         if not 0 <= cfg.skeleton.min_frames_fraction <= 1:
             raise ConfigError(f"skeleton.min_frames_fraction must be in [0, 1] (a fraction of the frame pairs; 0 = "
                               f"skeleton.min_frames alone), got {cfg.skeleton.min_frames_fraction}")

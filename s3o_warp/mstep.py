@@ -83,6 +83,15 @@ def _q(model) -> np.ndarray:
     return model.precisions().detach().cpu().double().numpy()
 
 
+def joint_samples(model, sc) -> sk.SurfaceSamples | None:
+    """The points over the canonical surface the joints are taken over (``skeleton.joint_samples``), or None
+    (the vertices)."""
+    if sc.joint_samples <= 1:
+        return None
+    return sk.surface_samples(model.verts.detach().cpu().double().numpy(), model.faces.detach().cpu().numpy(),
+                              model.bone_centers.detach().cpu().double().numpy(), _q(model), sc.joint_samples)
+
+
 def refresh_joints(model, state: SkeletonState, sc) -> None:
     """Joints = the kinematic tree's (parent, child) pairs, placed at the mean of the shared vertices
     (``sc.t_r``), then (``sc.centre_joints``) moved into the body (:func:`s3o_warp.skeleton.centre_in_body`).
@@ -92,7 +101,7 @@ def refresh_joints(model, state: SkeletonState, sc) -> None:
     if not len(state.joints):
         state.joint_positions = np.zeros((0, 3))
         return
-    J = sk.joint_positions(X, W, state.joints, t_r=sc.t_r)
+    J = sk.joint_positions(X, W, state.joints, t_r=sc.t_r, samples=joint_samples(model, sc))
     if sc.centre_joints:
         J = sk.centre_in_body(J, X, model.faces.detach().cpu().numpy(), max_depth=sc.joint_depth)
     state.joint_positions = J
@@ -113,7 +122,8 @@ def _prune_edit(model, state: SkeletonState, sc, min_length: float, mirror=None)
     of the mesh's size; ``mirror`` (partners, seen) takes each length from the better-seen of a bone and its partner."""
     X, W = _xw(model)
     C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
-    L = sk.bone_lengths(sk.bone_endpoints(X, W, state.joints, t_r=sc.t_r, far_fraction=sc.far_fraction), X)
+    L = sk.bone_lengths(sk.bone_endpoints(X, W, state.joints, t_r=sc.t_r, far_fraction=sc.far_fraction,
+                                          samples=joint_samples(model, sc)), X)
     if mirror is not None:
         L = _from_mirror(L, mirror[1], mirror[0], "lengths")
     return sk.prune_short_bones(L, min_length * sk.size_of(X), W, C, Q, state.parents, extents=state.extents)
@@ -198,7 +208,8 @@ def bone_length_variation(model, data, state: SkeletonState, cfg) -> tuple[np.nd
     """Which bones' lengths vary over frames (eq. 6 corrected), ``(B,)`` bool, and the endpoints used."""
     sc = cfg.skeleton
     X, W = _xw(model)
-    E = sk.bone_endpoints(X, W, state.joints, t_r=sc.t_r, far_fraction=sc.far_fraction)
+    E = sk.bone_endpoints(X, W, state.joints, t_r=sc.t_r, far_fraction=sc.far_fraction,
+                          samples=joint_samples(model, sc))
     lengths = []
     Wt = model.skinning()
     for s in range(0, data.num_frames, cfg.motion.batch_frames):

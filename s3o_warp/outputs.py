@@ -50,9 +50,11 @@ def rig_from_model(fitter):
     lengths = None
     if pairs is not None:
         from s3o_warp import skeleton as skl
+        from s3o_warp.mstep import joint_samples
 
         X, Wn = _np(m.verts), _np(W)
-        lengths = skl.bone_lengths(skl.bone_endpoints(X, Wn, pairs, t_r=fitter.cfg.skeleton.t_r), X)
+        lengths = skl.bone_lengths(skl.bone_endpoints(X, Wn, pairs, t_r=fitter.cfg.skeleton.t_r,
+                                                      samples=joint_samples(m, fitter.cfg.skeleton)), X)
     return Rig(
         verts=_np(m.verts).astype(np.float32),
         faces=m.faces.cpu().numpy().astype(np.int32),

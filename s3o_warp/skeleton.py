@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -299,13 +300,69 @@ def unexplained_motion(F_B: torch.Tensor, G_B: torch.Tensor, valid: torch.Tensor
 # ---------------------------------------------------------------------------------------------------
 
 
-def joint_selection(weights, pairs, t_r: float = 0.4, fallback_count: int = 4) -> np.ndarray:
+class SurfaceSamples(NamedTuple):
+    """Points spread over a mesh's surface, each a barycentric mix of one face's three vertices.
+
+    ``index`` ``(S, 3)`` vertex indices, ``bary`` ``(S, 3)`` weights (rows sum to 1; the point is
+    ``bary @ X[index]``), ``weights`` ``(S, B)`` the Gaussian bones' skinning weights at the points.
+    """
+
+    index: np.ndarray
+    bary: np.ndarray
+    weights: np.ndarray
+
+
+def gaussian_weights(points, centers, precisions) -> np.ndarray:
+    """``(S, B)`` ``softmax_b(-1/2 (x - C_b)^T Q_b (x - C_b))`` at ``(S, 3)`` points: the skinning weights of
+    the Gaussian bones anywhere (float64 twin of :func:`s3o_warp.kernels.skinning.skinning_weights`)."""
+    X, C, Q = _np(points).reshape(-1, 3), _np(centers).reshape(-1, 3), _np(precisions).reshape(-1, 3, 3)
+    d = X[:, None, :] - C[None]
+    logits = -0.5 * np.einsum("sbi,bik,sbk->sb", d, Q, d)
+    w = np.exp(logits - logits.max(1, keepdims=True))
+    return w / w.sum(1, keepdims=True)
+
+
+def surface_samples(verts, faces, centers, precisions, level: int) -> SurfaceSamples | None:
+    """Each face's barycentric grid of step ``1 / level``: the vertices once, ``level - 1`` points inside each
+    edge once and the grid's inner points once per face (``level**2`` small triangles per face, evenly covered),
+    with the Gaussian bones' weights there. ``level`` <= 1: None (the vertices alone)."""
+    if level <= 1:
+        return None
+    X, F = _np(verts), _np(faces, np.int64)
+    if F.ndim != 2 or F.shape[1] != 3:
+        raise ValueError(f"surface_samples(): faces must have shape (F, 3), got {F.shape}")
+    L = int(level)
+    N = len(X)
+    idx = [np.stack([np.arange(N)] * 3, 1)]
+    bary = [np.tile([1.0, 0.0, 0.0], (N, 1))]
+    e = np.unique(np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), 1), axis=0)
+    for m in range(1, L):
+        t = m / L
+        idx.append(np.stack([e[:, 0], e[:, 1], e[:, 1]], 1))
+        bary.append(np.tile([1.0 - t, t, 0.0], (len(e), 1)))
+    inner = [(i, j, L - i - j) for i in range(1, L) for j in range(1, L) if L - i - j >= 1]
+    for i, j, k in inner:
+        idx.append(F)
+        bary.append(np.tile([i / L, j / L, k / L], (len(F), 1)))
+    index, b = np.concatenate(idx), np.concatenate(bary)
+    points = np.einsum("sk,skc->sc", b, X[index])
+    return SurfaceSamples(index, b, gaussian_weights(points, centers, precisions))
+
+
+def joint_selection(weights, pairs, t_r: float = 0.4, fallback_count: int = 4,
+                    samples: SurfaceSamples | None = None) -> np.ndarray:
     """``(J, N)`` row-normalised selection: joint positions are ``selection @ X``.
 
     Row j is uniform over ``V_ij = {n : W[n,i] >= t_r and W[n,j] >= t_r}`` (paper 3.4, "Joint
     Positions"). When ``V_ij`` is empty (the bones barely overlap), the row is uniform over the
     ``fallback_count`` vertices with the largest ``min(W[n,i], W[n,j])``: the points most shared
     by both bones, which lie on their boundary.
+
+    With ``samples`` (:func:`surface_samples`; not in the paper) the same is done over those points, with
+    their own weights, instead of the vertices: on a coarse mesh the band where two bones' weights both
+    reach t_r often falls between the vertices of a thin leg, and the joint, taken from the few vertices
+    nearest to it, sits off the boundary. Each chosen point spreads its share over its face's vertices
+    (its barycentric weights), so the row still selects vertices and follows the posed mesh.
     """
     W = _np(weights)
     P = _np(pairs, np.int64).reshape(-1, 2)
@@ -313,18 +370,26 @@ def joint_selection(weights, pairs, t_r: float = 0.4, fallback_count: int = 4) -
         raise ValueError(f"joint_selection(): weights must have shape (N, B), got {W.shape}")
     if ((P < 0) | (P >= W.shape[1])).any():
         raise ValueError(f"joint_selection(): pairs must index bones in [0, {W.shape[1]})")
+    if samples is not None and samples.weights.shape[1] != W.shape[1]:
+        raise ValueError(f"joint_selection(): samples have weights of {samples.weights.shape[1]} bones, "
+                         f"weights {W.shape[1]}")
+    Ws = W if samples is None else _np(samples.weights)
     out = np.zeros((len(P), W.shape[0]))
     for j, (a, b) in enumerate(P):
-        m = np.minimum(W[:, a], W[:, b])
+        m = np.minimum(Ws[:, a], Ws[:, b])
         sel = m >= t_r
         if not sel.any():
             sel = np.zeros(len(m), bool)
             sel[np.argsort(-m, kind="stable")[: max(1, fallback_count)]] = True
-        out[j, sel] = 1.0 / sel.sum()
+        if samples is None:
+            out[j, sel] = 1.0 / sel.sum()
+        else:
+            np.add.at(out[j], samples.index[sel].ravel(), samples.bary[sel].ravel() / sel.sum())
     return out
 
 
-def joint_positions(verts, weights, pairs, t_r: float = 0.4, fallback_count: int = 4) -> np.ndarray:
+def joint_positions(verts, weights, pairs, t_r: float = 0.4, fallback_count: int = 4,
+                    samples: SurfaceSamples | None = None) -> np.ndarray:
     """Joint positions ``J_ij = mean of X_n over V_ij`` (see :func:`joint_selection` for the empty case).
 
     Args:
@@ -332,6 +397,7 @@ def joint_positions(verts, weights, pairs, t_r: float = 0.4, fallback_count: int
         weights: ``(N, B)`` W. pairs: ``(J, 2)`` bone pairs (i, j).
         t_r: weight threshold (paper: 0.4).
         fallback_count: vertices averaged when ``V_ij`` is empty.
+        samples: points over the surface to take ``V_ij`` from instead of the vertices (:func:`joint_selection`).
 
     Returns:
         ``(J, 3)`` or ``(T, J, 3)`` float64 positions.
@@ -339,7 +405,7 @@ def joint_positions(verts, weights, pairs, t_r: float = 0.4, fallback_count: int
     X = _np(verts)
     if X.shape[-1] != 3 or X.ndim not in (2, 3):
         raise ValueError(f"joint_positions(): verts must have shape (N, 3) or (T, N, 3), got {X.shape}")
-    Ssel = joint_selection(weights, pairs, t_r, fallback_count)
+    Ssel = joint_selection(weights, pairs, t_r, fallback_count, samples)
     if Ssel.shape[1] != X.shape[-2]:
         raise ValueError(f"joint_positions(): weights have {Ssel.shape[1]} vertices, verts {X.shape[-2]}")
     return np.einsum("jn,...nc->...jc", Ssel, X)
@@ -430,7 +496,7 @@ def centre_in_body(points, verts, faces, iterations: int = 2, max_depth: float =
 
 
 def bone_endpoints(verts, weights, pairs, t_r: float = 0.4, far_fraction: float = 0.1,
-                   fallback_count: int = 4) -> np.ndarray:
+                   fallback_count: int = 4, samples: SurfaceSamples | None = None) -> np.ndarray:
     """``(B, 2, N)`` endpoint selection: bone b's two ends are ``E[b, 0] @ X`` and ``E[b, 1] @ X``.
 
     A bone's length is the distance between its ends ("distance between the coordinates of joint
@@ -440,11 +506,13 @@ def bone_endpoints(verts, weights, pairs, t_r: float = 0.4, far_fraction: float 
       part's vertices ``I_b`` farthest from the joint;
     - no joint: the means of the lowest and highest ``far_fraction`` of ``I_b`` along its principal axis;
     - no part vertices: both ends at the vertex of largest weight (length 0).
+
+    ``samples``: joints taken over points spread over the surface (:func:`joint_selection`).
     """
     X, W = _bones_in("bone_endpoints", verts, weights)
     P = _np(pairs, np.int64).reshape(-1, 2)
     N, B = W.shape
-    Jsel = joint_selection(W, P, t_r, fallback_count)
+    Jsel = joint_selection(W, P, t_r, fallback_count, samples)
     jpos = Jsel @ X
     lab = assign_parts(W)
     E = np.zeros((B, 2, N))
@@ -715,6 +783,7 @@ def skeleton_json(centers, precisions, lengths, parents, joints, joint_pos, root
 __all__ = [
     "DEFAULT_SHARPNESS",
     "SkeletonEdit",
+    "SurfaceSamples",
     "apply_edit",
     "assign_parts",
     "bone_endpoints",
@@ -725,6 +794,7 @@ __all__ = [
     "children_of",
     "create_joints",
     "fit_bones_to_parts",
+    "gaussian_weights",
     "grow_skeleton",
     "joint_positions",
     "centre_in_body",
@@ -743,6 +813,7 @@ __all__ = [
     "size_of",
     "skeleton_json",
     "split_at_joints",
+    "surface_samples",
     "tree_joints",
     "unexplained_motion",
     "upsample_skeleton",

@@ -585,6 +585,7 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
     ("skeleton.motion_frame=image", "motion_frame"),
     ("skeleton.still_flow=0", "still_flow"),
     ("skeleton.min_section_vertices=0", "min_section_vertices"),
+    ("skeleton.joint_samples=0", "joint_samples"),
     ("motion.principal_point=centre", "motion.principal_point"),
 ])
 def test_fitter_refuses_a_bad_setting_before_any_work(tiny_sequence, tmp_path, bad, names):
@@ -811,6 +812,33 @@ def test_min_section_vertices_stops_the_m_steps_splits(tiny_sequence, tmp_path):
     sc.min_section_vertices = 4
     assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones > B1
     assert f.skel.history[-1]["operation"] == "joint"
+
+
+def test_joint_samples_reach_the_joints_and_the_m_step(tiny_sequence, tmp_path):
+    """skeleton.joint_samples: the joints are taken over the surface samples (not the vertices), and the
+    M-step's lengths and joint creation run on them."""
+    from s3o_warp import skeleton as sk
+    from s3o_warp.mstep import bone_length_variation, m_step, refresh_joints
+
+    cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
+    sc = cfg.skeleton
+    sc.centre_joints = False
+    assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1) and len(f.skel.joints)
+    J1 = f.skel.joint_positions.copy()
+    sc.joint_samples = 4
+    refresh_joints(f.model, f.skel, sc)
+    X, W = f.model.verts.detach().double().numpy(), f.model.skinning().detach().double().numpy()
+    s = sk.surface_samples(X, f.model.faces.numpy(), f.model.bone_centers.detach().double().numpy(),
+                           f.model.precisions().detach().double().numpy(), 4)
+    np.testing.assert_allclose(f.skel.joint_positions, sk.joint_positions(X, W, f.skel.joints, t_r=sc.t_r, samples=s))
+    assert not np.allclose(f.skel.joint_positions, J1)
+    split, E = bone_length_variation(f.model, data, f.skel, cfg)
+    np.testing.assert_allclose(E, sk.bone_endpoints(X, W, f.skel.joints, t_r=sc.t_r, far_fraction=sc.far_fraction,
+                                                    samples=s))
+    sc.t_o, sc.t_d, sc.min_bone_length = 2.0, 0.0, 0.0  # every bone qualifies for a joint
+    B1 = f.model.num_bones
+    assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones > B1
+    assert len(f.skel.parents) == f.model.num_bones == len(f.skel.joints) + 1
 
 
 def test_m_step_splits_end_bones_that_bend_and_keeps_the_loss(tiny_sequence, tmp_path):

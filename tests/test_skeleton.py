@@ -653,6 +653,73 @@ def test_joint_position_is_mean_of_shared_vertices_and_fallback():
     np.testing.assert_allclose(Jt[1, 0], X[5:12].mean(0) + 1)
 
 
+def _tube(rings, k=6, radius=0.2):
+    """A closed tube along z: ``k`` vertices on each ring at heights ``rings``, capped by one vertex at each end."""
+    a = 2 * np.pi * np.arange(k) / k
+    X = [[0, 0, rings[0] - radius]]
+    for z in rings:
+        X += [[radius * np.cos(t), radius * np.sin(t), z] for t in a]
+    X.append([0, 0, rings[-1] + radius])
+    X = np.asarray(X, float)
+    F, n = [], len(rings)
+    for i in range(k):
+        j = (i + 1) % k
+        F.append([0, 1 + j, 1 + i])
+        for r in range(n - 1):
+            p, q = 1 + r * k, 1 + (r + 1) * k
+            F += [[p + i, p + j, q + j], [p + i, q + j, q + i]]
+        F.append([len(X) - 1, 1 + (n - 1) * k + i, 1 + (n - 1) * k + j])
+    return X, np.asarray(F, np.int64)
+
+
+def test_surface_samples_cover_faces_evenly_with_gaussian_weights():
+    X, F = _tube([0.0, 1.0, 2.0])
+    C = np.array([[0, 0, 0.2], [0, 0, 1.8]])
+    Q = np.stack([np.diag([1.0, 2.0, 3.0])] * 2)
+    assert sk.surface_samples(X, F, C, Q, 1) is None
+    for L in (2, 4):
+        s = sk.surface_samples(X, F, C, Q, L)
+        E = len(np.unique(np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), 1), axis=0))
+        assert len(s.index) == len(X) + (L - 1) * E + len(F) * (L - 1) * (L - 2) // 2
+        np.testing.assert_allclose(s.bary.sum(1), 1.0)
+        assert (s.bary >= 0).all()
+        P = np.einsum("sk,skc->sc", s.bary, X[s.index])
+        assert len(np.unique(P.round(9), axis=0)) == len(P)  # every point once
+        np.testing.assert_allclose(s.weights, sk.gaussian_weights(P, C, Q))
+    # the Gaussian weights are the skinning kernel's (float32)
+    from s3o_warp.kernels.skinning import skinning_weights
+
+    f32 = dict(dtype=torch.float32)
+    Wk = skinning_weights(torch.tensor(P, **f32), torch.tensor(C, **f32), torch.tensor(Q, **f32)).numpy()
+    np.testing.assert_allclose(sk.gaussian_weights(P, C, Q), Wk, atol=1e-5)
+    with pytest.raises(ValueError, match="faces"):
+        sk.surface_samples(X, F[:, :2], C, Q, 2)
+
+
+def test_joint_on_surface_samples_finds_a_boundary_between_vertex_rings():
+    # two bones along a tube whose weight boundary (z = 0.25) lies half way between two rings of vertices:
+    # no vertex has both weights >= t_r, the vertex fallback lands on a ring, the samples find the band
+    X, F = _tube([-1.0, -0.5, 0.0, 0.5, 1.0, 1.5])
+    C = np.array([[0, 0, -0.5], [0, 0, 1.0]])
+    Q = np.stack([np.diag([1.0, 1.0, 40.0])] * 2)
+    W = sk.gaussian_weights(X, C, Q)
+    assert (np.minimum(W[:, 0], W[:, 1]) < 0.4).all()
+    s = sk.surface_samples(X, F, C, Q, 8)
+    Jv = sk.joint_positions(X, W, [[0, 1]])[0]
+    Js = sk.joint_positions(X, W, [[0, 1]], samples=s)[0]
+    assert abs(Jv[2] - 0.25) > 0.2
+    assert abs(Js[2] - 0.25) < 0.02 and np.linalg.norm(Js[:2]) < 0.02  # on the boundary and the tube's axis
+    S = sk.joint_selection(W, [[0, 1]], samples=s)
+    assert S.shape == (1, len(X)) and (S >= 0).all()
+    np.testing.assert_allclose(S.sum(1), 1.0)
+    Y = X + np.array([0.3, -0.1, 2.0])  # the selection follows the (here translated) mesh
+    np.testing.assert_allclose(sk.joint_positions(np.stack([X, Y]), W, [[0, 1]], samples=s)[1, 0], Js + [0.3, -0.1, 2.0])
+    E = sk.bone_endpoints(X, W, [[0, 1]], samples=s)
+    np.testing.assert_allclose(E[0, 0] @ X, Js, atol=1e-12)  # an end bone's first end is its joint
+    with pytest.raises(ValueError, match="samples"):
+        sk.joint_selection(W[:, :1], [[0, 0]], samples=s)
+
+
 def test_bone_lengths_and_create_joints_for_stretching_bone():
     X, W = _chain()
     pairs = sk.tree_joints(np.array([-1, 0, 1]))
