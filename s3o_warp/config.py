@@ -116,6 +116,10 @@ class MotionConfig:
     """Even resampling of the canonical mesh (paper B) every this many epochs of the joint phase; 0 = never."""
     resample_vertices: int = 0
     """Vertex count the resampled mesh aims at; 0 = the coarse mesh's count."""
+    refine_vertices: int = 0
+    """Not in the paper: the vertex count of the resamplings from the first merge on (the skeleton refinement,
+    skeleton.epochs after e1 + 1): a leg's parts need vertices for its joints to be placed and its bones to split
+    (``skeleton.min_section_vertices``, ``min_mass``). 0 = resample_vertices."""
     resample_method: str = "marching"
     """How the mesh is resampled (``s3o_warp.resample``): marching (marching cubes of its distance field, like
     LASR's and S3O's Manifold) or isotropic (pymeshlab's isotropic remeshing of the surface itself)."""
