@@ -35,7 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue from the last checkpoint in the run directory")
     p.add_argument("--branch-from", default=None, metavar="RUN_DIR",
                    help="start from that run's state just before its first merge (its checkpoints/branch.pt): the same "
-                        "sequence and settings but another skeleton.t_o (or merge_quantile, t_u, split_end_bones, motion.polish_steps, polish_lr_factor), e.g. --set skeleton.t_o=0.90, "
+                        "sequence and settings but another skeleton.t_o (or another setting read only from there on: fit.BRANCH_MAY_DIFFER), e.g. --set skeleton.t_o=0.90, "
                         "at a fraction of a fit")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override one setting, e.g. motion.steps=300")
     p.add_argument("--object-id", type=int, default=None, help="palette index of the object in multi-object masks")

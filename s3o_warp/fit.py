@@ -35,8 +35,8 @@ CHECKPOINT_VERSION = 2
 BRANCH_CHECKPOINT = "branch.pt"  # in <run>/checkpoints: the state before the first M-step that reads t_o
 BRANCH_LOG = "branch.log.jsonl"
 BRANCH_MAY_DIFFER = ("skeleton.t_o", "skeleton.merge_quantile", "skeleton.t_u", "skeleton.split_end_bones",
-                     "skeleton.t_d", "skeleton.min_bone_length", "motion.refine_vertices", "motion.polish_steps",
-                     "motion.polish_lr_factor")
+                     "skeleton.t_d", "skeleton.min_bone_length", "skeleton.split_inner_bones", "motion.refine_vertices",
+                     "motion.polish_steps", "motion.polish_lr_factor")
 """The settings a branched fit may change: the refinement and the polish after the joint phase read them only
 after the branch (and output.*, preset: no effect on the fit)."""
 EARLIER_DEFAULTS = {"motion.principal_point": "frame"}
@@ -1238,7 +1238,7 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
     ``sequence_dir`` is a sequence folder, a DAVIS root (with ``name``), a DAVIS sequence folder, or a
     video file / frame folder with a separate ``masks`` folder (see ``s3o_warp.video.open_sequence``).
     ``branch_from``: a finished or running fit of the same sequence whose settings differ from ``cfg`` only in
-    ``skeleton.t_o``, ``merge_quantile``, ``t_u``, ``split_end_bones``, ``t_d``, ``min_bone_length``, ``motion.refine_vertices`` or ``motion.polish_*`` (:data:`BRANCH_MAY_DIFFER`: read only from the branch on); the fit starts from its ``checkpoints/branch.pt`` (the state just
+    ``skeleton.t_o``, ``merge_quantile``, ``t_u``, ``split_end_bones``, ``split_inner_bones``, ``t_d``, ``min_bone_length``, ``motion.refine_vertices`` or ``motion.polish_*`` (:data:`BRANCH_MAY_DIFFER`: read only from the branch on); the fit starts from its ``checkpoints/branch.pt`` (the state just
     before the first merge) and its cached flow, so a t_o study pays for the shared part once (the rest of the run directory is this fit's own). With
     ``resume`` a checkpoint of ``out_dir`` itself comes first.
     """

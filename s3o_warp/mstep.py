@@ -221,12 +221,14 @@ def bone_length_variation(model, data, state: SkeletonState, cfg) -> tuple[np.nd
 @torch.no_grad()
 def end_bone_bending(model, data, state: SkeletonState, E: np.ndarray, cfg) -> np.ndarray:
     """Per bone, how much of the relative motion of its part's two halves the fit leaves unexplained
-    (:func:`s3o_warp.skeleton.unexplained_motion`), ``(B,)``; NaN for bones that are not end bones (one joint),
-    are shorter than twice ``skeleton.min_bone_length``, cannot be cut or are seen in too few frames.
+    (:func:`s3o_warp.skeleton.unexplained_motion`), ``(B,)``; NaN for bones that are not tested (end bones, one
+    joint, with ``skeleton.split_end_bones``; inner bones, two joints or more, with ``split_inner_bones``), are
+    shorter than twice ``skeleton.min_bone_length``, cannot be cut or are seen in too few frames.
 
     Not in the paper: an end bone's length runs from its joint to its far end, which both move with the bone,
     so eq. 6 never gives it a joint; a knee inside it shows in the flow instead, as two halves that the one
-    rigid bone cannot move as the video does.
+    rigid bone cannot move as the video does. An inner bone's halves are cut half way between its two farthest
+    joints (eq. 6's ends).
     """
     from s3o_warp.kernels.visibility import vertex_visibility
     from s3o_warp.losses import vertex_flow_crop
@@ -237,8 +239,11 @@ def end_bone_bending(model, data, state: SkeletonState, E: np.ndarray, cfg) -> n
     out = np.full(B, np.nan)
     if not len(state.joints):
         return out
-    ends = np.bincount(np.asarray(state.joints).ravel(), minlength=B) == 1
+    count = np.bincount(np.asarray(state.joints).ravel(), minlength=B)
+    ends = ((count == 1) if sc.split_end_bones else False) | ((count >= 2) if sc.split_inner_bones else False)
     ends &= sk.bone_lengths(E, X) >= 2.0 * sc.min_bone_length * sk.size_of(X)
+    if not ends.any():
+        return out
     C = model.bone_centers.detach().cpu().double().numpy()
     bones, W2 = sk.bone_halves(X, W, C, state.parents, E, ends, min_section_vertices=sc.min_section_vertices)
     if not len(bones):
@@ -259,7 +264,7 @@ def end_bone_bending(model, data, state: SkeletonState, E: np.ndarray, cfg) -> n
                                  np.arange(2 * len(bones)).reshape(-1, 2), min_flow=sc.min_flow,
                                  min_frames=merge_min_frames(sc, data.num_frames))
     out[bones] = r
-    log.info("M-step: unexplained motion of the end bones' halves: %s (t_u %.3g)",
+    log.info("M-step: unexplained motion of the bones' halves: %s (t_u %.3g)",
              " ".join(f"{b}:{x:.3f}/{k}" for b, x, k in zip(bones.tolist(), r, n.tolist())), sc.t_u)
     return out
 
@@ -374,10 +379,10 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int, sym_plane=No
                 changed, mirror = True, _mirror(model, cfg, sym_plane, _seen_after(mirror, edit))
         if len(state.joints):
             split, E = bone_length_variation(model, data, state, cfg)
-            if sc.split_end_bones:  # not in the paper: a knee inside an end bone (end_bone_bending)
+            if sc.split_end_bones or sc.split_inner_bones:  # not in the paper: a knee inside a bone (end_bone_bending)
                 bend = end_bone_bending(model, data, state, E, cfg) > sc.t_u
                 if bend.any():
-                    log.info("M-step epoch %d: end bones %s bend inside (unexplained motion > t_u %.3g)", epoch,
+                    log.info("M-step epoch %d: bones %s bend inside (unexplained motion > t_u %.3g)", epoch,
                              np.flatnonzero(bend).tolist(), sc.t_u)
                 split = split | bend
             if mirror is not None:

@@ -326,7 +326,7 @@ def test_a_branch_refuses_other_settings_and_a_run_without_its_checkpoint(tiny_s
     over = {"coarse.steps": 2, "motion.warmup_steps": 2, "motion.steps": 8, "skeleton.epochs": 4, "skeleton.e1": 1}
     a = tmp_path / "a"
     fit(tiny_sequence, a, _cfg(**over), torch.device("cpu"))
-    with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o, skeleton.merge_quantile, skeleton.t_u, skeleton.split_end_bones, skeleton.t_d, skeleton.min_bone_length, motion.polish_steps, motion.polish_lr_factor may differ"):
+    with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o, skeleton.merge_quantile, skeleton.t_u, skeleton.split_end_bones, skeleton.t_d, skeleton.min_bone_length, skeleton.split_inner_bones, motion.refine_vertices, motion.polish_steps, motion.polish_lr_factor may differ"):
         fit(tiny_sequence, tmp_path / "b", _cfg(**over, **{"motion.lr_bones": 0.123}), torch.device("cpu"), branch_from=a)
     assert not (tmp_path / "b").exists()  # refused before any work
     # a run from before a setting existed ran with its default: that setting does not count as a difference
@@ -868,6 +868,35 @@ def test_m_step_splits_end_bones_that_bend_and_keeps_the_loss(tiny_sequence, tmp
     sc.t_u = -1.0
     assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1)
     assert f.model.num_bones == B0 + int(np.isfinite(r).sum()) and f.skel.history[-1]["operation"] == "joint"
+    after, loss1 = _posed_and_loss(f, frames)
+    _assert_no_jump(before, after, loss0, loss1)
+
+
+def test_m_step_splits_inner_bones_that_bend(tiny_sequence, tmp_path):
+    """skeleton.split_inner_bones: the halves test runs on the bones with two joints or more too (alone: only on
+    them), and with t_u < 0 every one measured gets a joint."""
+    from s3o_warp.mstep import bone_length_variation, end_bone_bending, m_step
+
+    cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
+    sc = cfg.skeleton
+    assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1)
+    sc.t_o, sc.t_d, sc.min_bone_length = 2.0, 1e9, 0.0  # no merge, no pruning, no eq. 6 joint
+    B0 = f.model.num_bones
+    count = np.bincount(f.skel.joints.ravel(), minlength=B0)
+    _, E = bone_length_variation(f.model, data, f.skel, cfg)
+    r_end = end_bone_bending(f.model, data, f.skel, E, cfg)
+    sc.split_inner_bones = True
+    r_all = end_bone_bending(f.model, data, f.skel, E, cfg)
+    sc.split_end_bones = False
+    r_inner = end_bone_bending(f.model, data, f.skel, E, cfg)
+    assert np.isfinite(r_inner).sum() >= 1 and not np.isfinite(r_inner[count < 2]).any()
+    np.testing.assert_array_equal(np.isfinite(r_all), np.isfinite(r_end) | np.isfinite(r_inner))
+    np.testing.assert_allclose(r_all[count >= 2], r_inner[count >= 2])
+    np.testing.assert_allclose(r_all[count == 1], r_end[count == 1])
+    sc.t_u = -1.0
+    before, loss0 = _posed_and_loss(f, frames)
+    assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1)
+    assert f.model.num_bones == B0 + int(np.isfinite(r_inner).sum()) and f.skel.history[-1]["operation"] == "joint"
     after, loss1 = _posed_and_loss(f, frames)
     _assert_no_jump(before, after, loss0, loss1)
 
