@@ -290,19 +290,19 @@ class SkeletonConfig:
     session 31; 0.15 gives the legs more joints: docs/results.md, "Session 31")."""
     t_r: float = 0.4
     """Joint position: mean of the vertices with both bones' weights >= t_r."""
-    joint_samples: int = 1
+    joint_samples: int = 4
     """Not in the paper: take the joints (t_r) and the bone ends of eq. 6 over points spread over the surface,
     each face cut into joint_samples**2 small triangles, with the Gaussian bones' weights there, instead of over
-    the vertices alone (1 = the vertices, the paper). On a coarse mesh the band where two bones' weights both
-    reach t_r often lies between a thin leg's vertices."""
+    the vertices alone (1 = the vertices, the paper, the default until session 34). On a coarse mesh the band
+    where two bones' weights both reach t_r often lies between a thin leg's vertices."""
     split_end_bones: bool = True
     """Not in the paper: also create a joint in an end bone (one joint, a leg's shin and paw) whose part's two
     halves move relative to each other in a way the one rigid bone does not reproduce (median over the frames
     of the unexplained share above t_u). Eq. 6 cannot split an end bone: its length runs from its joint to its
     far end, which both move with the bone, so it never varies. false = eq. 6 alone (the paper)."""
-    split_inner_bones: bool = False
+    split_inner_bones: bool = True
     """Not in the paper: split_end_bones's test on inner bones too (two joints or more), cut half way between
-    their two farthest joints. Eq. 6 sees a knee inside an inner bone only through its end-to-end length, which a
+    their two farthest joints (false until session 34: docs/results.md, "Session 34"). Eq. 6 sees a knee inside an inner bone only through its end-to-end length, which a
     30-degree bend half way along shortens by 3 % (t_d is 15 %); a small hoof or paw bone below a long leg bone
     makes that leg bone an inner one."""
     t_u: float = 0.4

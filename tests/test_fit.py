@@ -345,6 +345,12 @@ def test_a_branch_refuses_other_settings_and_a_run_without_its_checkpoint(tiny_s
     assert _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.principal_point": "frame"})) == ck
     with pytest.raises(InputError, match=r"differ in motion.principal_point \('frame' there, 'shared' here\)"):
         _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.principal_point": "shared"}))
+    del state["config"]["skeleton"]["joint_samples"]  # 1 until session 34, 4 now
+    torch.save(state, ck)
+    assert _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.principal_point": "frame",
+                                                               "skeleton.joint_samples": 1})) == ck
+    with pytest.raises(InputError, match=r"differ in skeleton.joint_samples \(1 there, 4 here\)"):
+        _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.principal_point": "frame"}))
     with pytest.raises(InputError, match="that is the run directory itself"):
         fit(tiny_sequence, a, _cfg(**over), torch.device("cpu"), branch_from=a)
     short = tmp_path / "short"  # 3 epochs, e1 1: the last M-step is the upsampling, t_o is never read
@@ -713,8 +719,10 @@ def test_coarse_fit_keeps_the_lifted_depth(tiny_sequence, tmp_path, freeze):
 def _joint_fitter(tiny_sequence, tmp_path):
     """A Fitter in its joint phase after 3 steps on frames 0-3 (the bones have some motion). The M-step tests'
     cases (a far leg never seen moving, the shortest inner bone) were picked on this state, made with the medium
-    preset's own finest flow level (1), which is pinned so the state stays."""
-    cfg = _cfg(**{"coarse.steps": 5, "motion.warmup_steps": 5, "data.flow_finest_scale": 1})
+    preset's own finest flow level (1), which is pinned so the state stays, and with the paper's joints over the
+    vertices and no inner-bone split (the defaults then; the tests of those two options turn them on)."""
+    cfg = _cfg(**{"coarse.steps": 5, "motion.warmup_steps": 5, "data.flow_finest_scale": 1,
+                  "skeleton.joint_samples": 1, "skeleton.split_inner_bones": False})
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
     f.phase = "joint"
