@@ -302,9 +302,9 @@ class SkeletonConfig:
     far end, which both move with the bone, so it never varies. false = eq. 6 alone (the paper)."""
     split_inner_bones: bool = True
     """Not in the paper: split_end_bones's test on inner bones too (two joints or more), cut half way between
-    their two farthest joints (false until session 34: docs/results.md, "Session 34"). Eq. 6 sees a knee inside an inner bone only through its end-to-end length, which a
-    30-degree bend half way along shortens by 3 % (t_d is 15 %); a small hoof or paw bone below a long leg bone
-    makes that leg bone an inner one."""
+    their two farthest joints (false until session 34: docs/results.md, "Session 34"). Eq. 6 sees a knee inside
+    an inner bone only through its end-to-end length, which a 30-degree bend half way along shortens by 3 % (t_d
+    is 15 %); a small hoof or paw bone below a long leg bone makes that leg bone an inner one."""
     t_u: float = 0.4
     """split_end_bones: the unexplained share of the halves' relative image motion, |observed - fitted| /
     max(|observed|, |fitted|), median over the frames both halves are seen in, above which an end bone gets a

@@ -39,7 +39,8 @@ BRANCH_MAY_DIFFER = ("skeleton.t_o", "skeleton.merge_quantile", "skeleton.t_u", 
                      "motion.polish_steps", "motion.polish_lr_factor")
 """The settings a branched fit may change: the refinement and the polish after the joint phase read them only
 after the branch (and output.*, preset: no effect on the fit)."""
-EARLIER_DEFAULTS = {"motion.principal_point": "frame", "skeleton.split_inner_bones": False, "skeleton.joint_samples": 1}
+EARLIER_DEFAULTS = {"motion.principal_point": "frame",
+                    "skeleton.split_inner_bones": False, "skeleton.joint_samples": 1}  # both changed in session 34
 """Settings whose default changed since runs were first written without them: the value such a run had (a parent
 run's or a checkpoint's config that lacks the key is read with it, not with today's default)."""
 
