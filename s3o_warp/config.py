@@ -28,9 +28,6 @@ class DataConfig:
     """DIS's finest pyramid level: 0 = the flow canvas's full resolution, 1 = half (the medium preset's own), 2 = a
     quarter (fast, ultrafast); None = the preset's. At the preset's level the synthetic renders' flow is 0.87-0.90 of
     the true motion, at 0 0.96-0.97 (``scripts/bench_flow.py``)."""
-    flow_upsample: float = 1.0
-    """Flow canvas resolution: 1 = the finer of the frame and the crops; 2 = twice as fine (thin legs a few pixels
-    wide then span DIS's patches), at four times the flow's cost."""
     flow_fb_sigma: float = 1.0
     """Forward-backward consistency: confidence = exp(-|f + b(x + f)|^2 / (2 sigma^2)), sigma in crop pixels."""
     fps: float = 30.0

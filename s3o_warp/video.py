@@ -107,8 +107,6 @@ def check_data_config(cfg: DataConfig) -> None:
     fs = cfg.flow_finest_scale
     if fs is not None and (isinstance(fs, bool) or not isinstance(fs, int) or not 0 <= fs <= 4):
         raise ConfigError(f"data.flow_finest_scale must be an integer in [0, 4] or None (the preset's), got {fs!r}")
-    if not 1.0 <= cfg.flow_upsample <= 4.0:
-        raise ConfigError(f"data.flow_upsample must be in [1, 4] (canvas resolution factor), got {cfg.flow_upsample!r}")
     if not cfg.flow_fb_sigma > 0:
         raise ConfigError(f"data.flow_fb_sigma must be > 0 (crop pixels), got {cfg.flow_fb_sigma!r}")
     if not cfg.fps > 0:

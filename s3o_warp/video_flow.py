@@ -3,11 +3,9 @@
 What is computed, for each pair of frames (t, t+1) with crops A_t, A_{t+1} (``crop_to_frame``):
 
 1. A *flow canvas* covering both crop squares (their union, clipped to the frame) is resampled from
-   both full frames at a common scale g = max(1, min(a_t, a_{t+1})) / u frame pixels per canvas pixel
-   (a = crop side / crop_size, u = ``DataConfig.flow_upsample``), so at u = 1 the canvas is never finer
-   than the frame nor coarser than either crop, and u > 1 makes it u times finer (thin parts a few
-   pixels wide then span more than DIS's patches); DIS runs on the two grey canvases, forward
-   (t -> t+1) and backward.
+   both full frames at a common scale g = max(1, min(a_t, a_{t+1})) frame pixels per canvas pixel
+   (a = crop side / crop_size), so the canvas is never finer than the frame nor coarser than either
+   crop; DIS runs on the two grey canvases, forward (t -> t+1) and backward.
 2. The canvas flows are expressed in crop pixels. Concretely, ``flow_fwd[r, c] = (dx, dy)`` means
    the scene point at crop-t pixel (c, r) is seen at crop-(t+1) pixel (c + dx, r + dy), i.e.
    ``f(p) = A_{t+1}^-1 (x + F(x)) - p`` with x = A_t p and F the frame flow. Each frame keeps its
@@ -128,11 +126,10 @@ def make_dis(preset: str, finest_scale: int | None = None) -> cv2.DISOpticalFlow
 
 
 def flow_canvas(
-    crop_to_frame_a: np.ndarray, crop_to_frame_b: np.ndarray, frame_size: tuple[int, int], crop_size: int,
-    upsample: float = 1.0,
+    crop_to_frame_a: np.ndarray, crop_to_frame_b: np.ndarray, frame_size: tuple[int, int], crop_size: int
 ) -> tuple[np.ndarray, tuple[int, int]]:
-    """The common region on which the flow of a pair is computed, ``upsample`` times finer than the finer of
-    the frame and the coarser crop (see the module docstring).
+    """The common region on which the flow of a pair is computed, at the finer of the frame and the coarser crop
+    (see the module docstring).
 
     Returns:
         ``canvas_to_frame`` (3, 3) float64 (scale g, translation) and the canvas ``(height, width)``.
@@ -147,7 +144,7 @@ def flow_canvas(
     top = max(min(b[1] for b in boxes), -0.5)
     right = min(max(b[2] for b in boxes), W - 0.5)
     bottom = min(max(b[3] for b in boxes), H - 0.5)
-    g = max(1.0, min(crop_to_frame_a[0, 0], crop_to_frame_b[0, 0])) / upsample
+    g = max(1.0, min(crop_to_frame_a[0, 0], crop_to_frame_b[0, 0]))
     wc = max(math.ceil((right - left) / g - 1e-9), _MIN_CANVAS)
     hc = max(math.ceil((bottom - top) / g - 1e-9), _MIN_CANVAS)
     canvas_to_frame = np.array([[g, 0.0, left + 0.5 * g], [0.0, g, top + 0.5 * g], [0.0, 0.0, 1.0]])
@@ -201,7 +198,6 @@ def pair_flow(
     crop_size: int,
     sigma: float,
     dis: cv2.DISOpticalFlow,
-    upsample: float = 1.0,
 ) -> np.ndarray:
     """Forward/backward crop flow and confidences of one frame pair (no caching).
 
@@ -211,13 +207,12 @@ def pair_flow(
         crop_size: S.
         sigma: forward-backward sigma in crop pixels.
         dis: from :func:`make_dis`.
-        upsample: canvas resolution factor (``DataConfig.flow_upsample``, :func:`flow_canvas`).
 
     Returns:
         ``(S, S, 6) float32``: fwd dx, fwd dy, bwd dx, bwd dy, conf_fwd, conf_bwd (see :class:`FlowPair`).
     """
     size = image_a.shape[:2]
-    g2f, (hc, wc) = flow_canvas(crop_to_frame_a, crop_to_frame_b, size, crop_size, upsample)
+    g2f, (hc, wc) = flow_canvas(crop_to_frame_a, crop_to_frame_b, size, crop_size)
     ca = warp_similarity(cv2.cvtColor(image_a, cv2.COLOR_RGB2GRAY), g2f, (hc, wc), 0)
     cb = warp_similarity(cv2.cvtColor(image_b, cv2.COLOR_RGB2GRAY), g2f, (hc, wc), 0)
     fwd = dis.calc(ca, cb, None)
@@ -243,8 +238,6 @@ def pair_key(seq: Sequence, t: int, cfg: DataConfig) -> str:
     }
     if cfg.flow_finest_scale is not None:  # absent when unset, so caches made before the setting stay valid
         payload["flow_finest_scale"] = int(cfg.flow_finest_scale)
-    if cfg.flow_upsample != 1.0:
-        payload["flow_upsample"] = float(cfg.flow_upsample)
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
 
 
@@ -277,7 +270,7 @@ def compute_flow(seq: Sequence, cache_dir: str | Path, cfg: DataConfig | None = 
     Args:
         seq: from :func:`s3o_warp.video.open_sequence`; its crops define the crop coordinates.
         cache_dir: e.g. ``<run>/cache``.
-        cfg: flow settings (``flow_preset``, ``flow_finest_scale``, ``flow_upsample``, ``flow_fb_sigma``); defaults
+        cfg: flow settings (``flow_preset``, ``flow_finest_scale``, ``flow_fb_sigma``); defaults
             to ``seq.cfg``. Its crop settings must equal the sequence's.
 
     Returns:
@@ -301,7 +294,7 @@ def compute_flow(seq: Sequence, cache_dir: str | Path, cfg: DataConfig | None = 
     todo = [t for t, f in enumerate(files) if not (f.is_file() and _is_valid_file(f, S))]
     dis = make_dis(cfg.flow_preset, cfg.flow_finest_scale) if todo else None
     for t in tqdm(todo, desc=f"{seq.name}: optical flow", unit="pair", leave=False, disable=None):
-        arr = pair_flow(seq.image(t), seq.image(t + 1), c2f[t], c2f[t + 1], S, cfg.flow_fb_sigma, dis, cfg.flow_upsample)
+        arr = pair_flow(seq.image(t), seq.image(t + 1), c2f[t], c2f[t + 1], S, cfg.flow_fb_sigma, dis)
         cache_dir.mkdir(parents=True, exist_ok=True)
         _save_atomic(files[t], arr)
     hits = len(files) - len(todo)

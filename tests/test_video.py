@@ -23,7 +23,7 @@ from s3o_warp.video import (
     mask_bbox,
     open_sequence,
 )
-from s3o_warp.video_flow import compute_flow, flow_canvas, make_dis, pair_flow
+from s3o_warp.video_flow import compute_flow, make_dis, pair_flow
 
 H, W = 60, 80
 
@@ -334,13 +334,13 @@ def translated_pair(d=(2.6, -1.4), h=120, w=160):
     return img0, img1, m0, m1
 
 
-@pytest.mark.parametrize("crop_size,upsample", [(64, 1.0), (96, 1.0), (64, 2.0)])
-def test_flow_on_translated_texture(crop_size, upsample):
+@pytest.mark.parametrize("crop_size", [64, 96])
+def test_flow_on_translated_texture(crop_size):
     d = np.array([2.6, -1.4])
     img0, img1, m0, m1 = translated_pair(tuple(d))
     c0 = crop_frame(img0, m0, crop_size, 1.3)
     c1 = crop_frame(img1, m1, crop_size, 1.3)
-    arr = pair_flow(img0, img1, c0.crop_to_frame, c1.crop_to_frame, crop_size, 1.0, make_dis("medium"), upsample)
+    arr = pair_flow(img0, img1, c0.crop_to_frame, c1.crop_to_frame, crop_size, 1.0, make_dis("medium"))
     fwd, bwd, cf, cb = arr[..., 0:2], arr[..., 2:4], arr[..., 4], arr[..., 5]
     r, c = np.mgrid[0:crop_size, 0:crop_size].astype(np.float64)
     p = np.stack([c, r], -1)
@@ -393,18 +393,6 @@ def test_flow_confidence_low_where_occluded():
     assert np.linalg.norm(arr[..., 0:2] - true_bg, axis=-1)[far].mean() < 0.5
 
 
-def test_flow_canvas_upsample():
-    """``flow_upsample`` u: the same region of the frame, u times finer."""
-    a = crop_transform((40, 30, 119, 89), 64, 1.3)
-    b = crop_transform((43, 29, 122, 88), 64, 1.3)
-    g1, (h1, w1) = flow_canvas(a, b, (120, 160), 64)
-    g2, (h2, w2) = flow_canvas(a, b, (120, 160), 64, 2.0)
-    assert g1[0, 0] == max(1.0, min(a[0, 0], b[0, 0])) and g2[0, 0] == g1[0, 0] / 2
-    assert abs(h2 - 2 * h1) <= 1 and abs(w2 - 2 * w1) <= 1
-    # the canvas's first pixel centre is half a canvas pixel inside the same left/top edge
-    np.testing.assert_allclose(g2[:2, 2] - 0.5 * g2[0, 0], g1[:2, 2] - 0.5 * g1[0, 0])
-
-
 def test_finest_scale_undoes_small_part_bias():
     """A small textured part moving over a still background (a leg in a low-resolution crop): DIS at the medium
     preset's finest level (half resolution) sees it move 10-15 % too little; ``flow_finest_scale=0`` within 5 %."""
@@ -455,8 +443,6 @@ def test_compute_flow_cache_hit(tmp_path):
     other = 1 if cfg.flow_finest_scale != 1 else 0  # another finest level than the default's
     fc5 = compute_flow(seq2, cache, DataConfig(crop_size=32, flow_preset="fast", flow_finest_scale=other))
     assert fc5.computed == 2 and not set(fc5.files) & set(fc.files)
-    fc6 = compute_flow(seq2, cache, DataConfig(crop_size=32, flow_preset="fast", flow_upsample=2.0))
-    assert fc6.computed == 2 and not set(fc6.files) & (set(fc.files) | set(fc5.files))
     direct = pair_flow(seq2.image(1), seq2.image(2), c2f[1], c2f[2], 32, 1.0, make_dis("fast", other))
     np.testing.assert_array_equal(np.asarray(fc5[1].flow_fwd), direct[..., 0:2])
     # a damaged cache file is recomputed, not trusted
@@ -566,7 +552,6 @@ def test_bad_settings(tmp_path):
         ({"flow_fb_sigma": 0.0}, "data.flow_fb_sigma"),
         ({"flow_finest_scale": -1}, "data.flow_finest_scale"),
         ({"flow_finest_scale": 1.5}, "data.flow_finest_scale"),
-        ({"flow_upsample": 0.5}, "data.flow_upsample"),
         ({"object_id": -1}, "data.object_id"),
         ({"crop_background": (0, 0)}, "data.crop_background"),
     ]:
