@@ -24,29 +24,15 @@ class DataConfig:
     """Side of the square crop as a multiple of the mask bounding box's longer side."""
     flow_preset: str = "medium"
     """OpenCV DIS optical-flow preset: ultrafast, fast or medium."""
-    flow_finest_scale: int | None = 0
-    """DIS's finest pyramid level: 0 = the flow canvas's full resolution, 1 = half (the medium preset's own), 2 = a
-    quarter (fast, ultrafast); None = the preset's. At the preset's level the synthetic renders' flow is 0.87-0.90 of
-    the true motion, at 0 0.96-0.97 (``scripts/bench_flow.py``)."""
-    flow_fb_sigma: float = 1.0
-    """Forward-backward consistency: confidence = exp(-|f + b(x + f)|^2 / (2 sigma^2)), sigma in crop pixels."""
     fps: float = 30.0
     """Frame rate of image-folder sequences (DAVIS included); a video file's own frame rate wins when it has one."""
     mask_threshold: int = 127
     """Grey-level and RGB masks: foreground = value > mask_threshold (0-255 scale)."""
-    crop_background: tuple[int, int, int] = (0, 0, 0)
-    """RGB colour given to crop pixels that fall outside the frame (masks get 0 there)."""
     largest_blob: bool = True
     """Masks with several disconnected blobs: keep the largest and the fragments near it (a warning names the
     frames); false keeps all."""
-    blob_gap: float = 0.05
-    """Fragments within this fraction of the largest blob's bbox diagonal belong to the object (thin legs break off)."""
-    border_weight: float = 0.3
-    """Silhouette-loss weight of frames where the object touches the frame border (it leaves the frame)."""
     resident_max_frames: int = 400
     """Sequences up to this many frames keep crops and flow in (device) memory; longer ones are streamed from disk."""
-    frame_cache_size: int = 4
-    """Decoded frames (image and mask) a sequence keeps in memory; others are read from disk on demand."""
 
 
 @dataclass

@@ -169,7 +169,7 @@ def prepare_data(sequence_dir: Path, cfg: Config, run_dir: Path, device: torch.d
         conf_fwd=FrameStore(_PairField(flow, "conf_fwd"), device, resident=resident),
         sequence_dir=Path(sequence_dir),
         frame_weight=torch.as_tensor(
-            np.where(np.asarray(seq.touches_border), cfg.data.border_weight, 1.0), dtype=torch.float32, device=device
+            np.where(np.asarray(seq.touches_border), video.BORDER_WEIGHT, 1.0), dtype=torch.float32, device=device
         ),
         open_kwargs=open_kwargs,
         mask_dir=Path(seq.mask_files[0]).parent,

@@ -13,7 +13,7 @@ What is computed, for each pair of frames (t, t+1) with crops A_t, A_{t+1} (``cr
    renderer gives when it projects vertices with each frame's own crop intrinsics.
    ``flow_bwd`` is the same from crop t+1 to crop t.
 3. Confidence ``conf_fwd(p) = exp(-|f(p) + b(p + f(p))|^2 / (2 sigma^2))`` (sigma =
-   ``DataConfig.flow_fb_sigma`` in crop-t pixels), evaluated exactly on the canvas (the error is the
+   :data:`FLOW_FB_SIGMA` in crop-t pixels), evaluated exactly on the canvas (the error is the
    canvas round-trip error scaled to crop-t pixels), and 0 where p or p + f(p) falls outside the
    frame. ``conf_bwd`` likewise on crop t+1.
 
@@ -46,6 +46,14 @@ log = logging.getLogger(__name__)
 
 FLOW_FORMAT_VERSION = 1
 """Bumped whenever what is stored in a flow cache file changes (old files are then ignored)."""
+
+FLOW_FINEST_SCALE = 0
+"""DIS's finest pyramid level: 0 = the flow canvas's full resolution (the medium preset's own is 1, half; fast and
+ultrafast stop at 2, a quarter). At the preset's level the synthetic renders' flow is 0.87-0.90 of the true motion,
+at 0 0.96-0.97 (``scripts/bench_flow.py``)."""
+
+FLOW_FB_SIGMA = 1.0
+"""Forward-backward consistency: confidence = exp(-|f + b(x + f)|^2 / (2 sigma^2)), sigma in crop pixels."""
 
 _CHANNELS = 6
 _MIN_CANVAS = 32
@@ -115,8 +123,8 @@ class FlowCache:
 
 
 def make_dis(preset: str, finest_scale: int | None = None) -> cv2.DISOpticalFlow:
-    """An OpenCV DIS optical-flow object for ``DataConfig.flow_preset`` and ``flow_finest_scale`` (None: the
-    preset's finest pyramid level)."""
+    """An OpenCV DIS optical-flow object for ``DataConfig.flow_preset`` and a finest pyramid level (None: the
+    preset's; the fit uses :data:`FLOW_FINEST_SCALE`)."""
     if preset not in FLOW_PRESETS:
         raise ConfigError(f"data.flow_preset must be one of {', '.join(FLOW_PRESETS)}, got {preset!r}")
     dis = cv2.DISOpticalFlow_create(FLOW_PRESETS[preset])
@@ -234,10 +242,9 @@ def pair_key(seq: Sequence, t: int, cfg: DataConfig) -> str:
         "crop_size": seq.cfg.crop_size,
         "crop_scale": float(seq.cfg.crop_scale),
         "flow_preset": cfg.flow_preset,
-        "flow_fb_sigma": float(cfg.flow_fb_sigma),
+        "flow_fb_sigma": float(FLOW_FB_SIGMA),
+        "flow_finest_scale": int(FLOW_FINEST_SCALE),
     }
-    if cfg.flow_finest_scale is not None:  # absent when unset, so caches made before the setting stay valid
-        payload["flow_finest_scale"] = int(cfg.flow_finest_scale)
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
 
 
@@ -270,7 +277,7 @@ def compute_flow(seq: Sequence, cache_dir: str | Path, cfg: DataConfig | None = 
     Args:
         seq: from :func:`s3o_warp.video.open_sequence`; its crops define the crop coordinates.
         cache_dir: e.g. ``<run>/cache``.
-        cfg: flow settings (``flow_preset``, ``flow_finest_scale``, ``flow_fb_sigma``); defaults
+        cfg: flow settings (``flow_preset``); defaults
             to ``seq.cfg``. Its crop settings must equal the sequence's.
 
     Returns:
@@ -292,9 +299,9 @@ def compute_flow(seq: Sequence, cache_dir: str | Path, cfg: DataConfig | None = 
     c2f = np.stack([crop_transform(tuple(b), S, cfg.crop_scale) for b in seq.bboxes])
     files = [cache_dir / f"flow_{pair_key(seq, t, cfg)[:40]}.npy" for t in range(seq.num_frames - 1)]
     todo = [t for t, f in enumerate(files) if not (f.is_file() and _is_valid_file(f, S))]
-    dis = make_dis(cfg.flow_preset, cfg.flow_finest_scale) if todo else None
+    dis = make_dis(cfg.flow_preset, FLOW_FINEST_SCALE) if todo else None
     for t in tqdm(todo, desc=f"{seq.name}: optical flow", unit="pair", leave=False, disable=None):
-        arr = pair_flow(seq.image(t), seq.image(t + 1), c2f[t], c2f[t + 1], S, cfg.flow_fb_sigma, dis)
+        arr = pair_flow(seq.image(t), seq.image(t + 1), c2f[t], c2f[t + 1], S, FLOW_FB_SIGMA, dis)
         cache_dir.mkdir(parents=True, exist_ok=True)
         _save_atomic(files[t], arr)
     hits = len(files) - len(todo)

@@ -60,9 +60,9 @@ def measure(seq_dir: Path, preset: str, finest_scale: int | None, crop_size: int
     """Ratio and end-point error of the crop flow against ``truth`` (from :func:`true_frame_flow`)."""
     from s3o_warp.config import DataConfig
     from s3o_warp.video import map_points, open_sequence
-    from s3o_warp.video_flow import make_dis, pair_flow
+    from s3o_warp.video_flow import FLOW_FB_SIGMA, make_dis, pair_flow
 
-    cfg = DataConfig(crop_size=crop_size, flow_preset=preset, flow_finest_scale=finest_scale)
+    cfg = DataConfig(crop_size=crop_size, flow_preset=preset)
     seq = open_sequence(seq_dir, cfg=cfg)
     dis = make_dis(preset, finest_scale)
     c2f = seq.crop_to_frame
@@ -71,7 +71,7 @@ def measure(seq_dir: Path, preset: str, finest_scale: int | None, crop_size: int
     p = np.stack([c, r], -1)
     ratios, weighted, epes = [], [], []
     for t, (ftrue, fg) in enumerate(truth):
-        arr = pair_flow(seq.image(t), seq.image(t + 1), c2f[t], c2f[t + 1], S, cfg.flow_fb_sigma, dis)
+        arr = pair_flow(seq.image(t), seq.image(t + 1), c2f[t], c2f[t + 1], S, FLOW_FB_SIGMA, dis)
         x = map_points(p, c2f[t])  # crop-t pixels in frame t
         x2 = map_points(p + arr[..., 0:2], c2f[t + 1])  # where the flow sends them, frame t+1
         xi, yi = np.round(x[..., 0]).astype(int), np.round(x[..., 1]).astype(int)
@@ -97,7 +97,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", nargs="+", default=["fox120", "horse"], help="synthetic cases of bench_fit.py")
     ap.add_argument("--presets", nargs="+", default=["medium"], help="DIS presets (data.flow_preset)")
     ap.add_argument("--finest-scales", nargs="+", default=["preset", "0"],
-                    help="data.flow_finest_scale values; 'preset' = None (the preset's own)")
+                    help="DIS finest pyramid levels; 'preset' = the preset's own (the fit uses video_flow.FLOW_FINEST_SCALE)")
     ap.add_argument("--crop-size", type=int, default=None, help="data.crop_size (default: the default preset's)")
     ap.add_argument("--out-dir", default=str(REPO / "runs" / "bench"), help="where sequences are rendered (bench_fit.py's)")
     args = ap.parse_args(argv)

@@ -5,12 +5,14 @@ from __future__ import annotations
 import copy
 import json
 import logging
+from unittest import mock
 
 import numpy as np
 import pytest
 import torch
 from conftest import smoke_config
 
+from s3o_warp import video_flow
 from s3o_warp.config import make_config
 from s3o_warp.errors import ConfigError, InputError
 from s3o_warp.fit import (
@@ -721,9 +723,10 @@ def _joint_fitter(tiny_sequence, tmp_path):
     cases (a far leg never seen moving, the shortest inner bone) were picked on this state, made with the medium
     preset's own finest flow level (1), which is pinned so the state stays, and with the paper's joints over the
     vertices and no inner-bone split (the defaults then; the tests of those two options turn them on)."""
-    cfg = _cfg(**{"coarse.steps": 5, "motion.warmup_steps": 5, "data.flow_finest_scale": 1,
+    cfg = _cfg(**{"coarse.steps": 5, "motion.warmup_steps": 5,
                   "skeleton.joint_samples": 1, "skeleton.split_inner_bones": False})
-    data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
+    with mock.patch.object(video_flow, "FLOW_FINEST_SCALE", 1):
+        data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
     f.phase = "joint"
     f.opt = f._make_optimizer()
