@@ -79,6 +79,7 @@ __all__ = [
     "crop_frame",
     "crop_transform",
     "mask_bbox",
+    "read_mask",
     "largest_component",
     "map_points",
     "intrinsics_crop_to_frame",
@@ -382,8 +383,9 @@ def _read_rgb(path: Path) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-def _read_mask(path: Path, object_id: int | None, threshold: int) -> np.ndarray:
-    """Boolean (H, W) foreground of one mask file; see the module docstring for the rules."""
+def read_mask(path: Path, object_id: int | None = None, threshold: int = DataConfig.mask_threshold) -> np.ndarray:
+    """Boolean (H, W) foreground of one mask file; see the module docstring for the rules (``object_id`` and
+    ``threshold``: ``DataConfig.object_id`` and ``mask_threshold``)."""
     try:
         with Image.open(path) as im:
             im.load()
@@ -605,7 +607,7 @@ class Sequence:
         """Frame k's foreground as ``(H, W) bool`` (read-only array; decoded on demand)."""
         k = self._index(k)
         return self._cached(
-            ("mask", k), lambda: _clean_mask(_read_mask(self.mask_files[k], self.cfg.object_id, self.cfg.mask_threshold), self.cfg)
+            ("mask", k), lambda: _clean_mask(read_mask(self.mask_files[k], self.cfg.object_id, self.cfg.mask_threshold), self.cfg)
         )
 
     def frame_digest(self, k: int) -> str:
@@ -786,7 +788,7 @@ def open_sequence(
     digests: list[str] = []
     H, W = size
     for k, mf in enumerate(tqdm(mask_files, desc=f"{seq_name}: masks", unit="mask", leave=False, disable=None)):
-        raw = _read_mask(mf, cfg.object_id, cfg.mask_threshold)
+        raw = read_mask(mf, cfg.object_id, cfg.mask_threshold)
         m = _clean_mask(raw, cfg)
         if m is not raw and (m != raw).any():
             multi_blob.append(k)
