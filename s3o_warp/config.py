@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from s3o_warp.coarse_skeleton import CoarseSettings
 from s3o_warp.resample import ResampleSettings
 
 
@@ -39,8 +38,9 @@ class DataConfig:
 class CoarseConfig:
     """Phase 1 (paper 3.2): 2D skeleton of the canonical frame, lift to ellipsoids, coarse shape fit."""
 
-    init: CoarseSettings = field(default_factory=lambda: CoarseSettings(target_vertices=1200))
-    """2D skeleton, lift and initial-mesh settings (``s3o_warp.coarse``); target_vertices sets the mesh size."""
+    target_vertices: int = 1200
+    """Vertex count of the initial mesh (the union of the lifted ellipsoids; its marching-cubes resolution is searched
+    for it), and of every resampling unless motion.resample_vertices is set (>= 100)."""
     depth: float = 3.0
     """Depth (object-frame units) at which the canonical frame's 2D skeleton is lifted."""
     fov_degrees: float = 45.0
@@ -423,7 +423,7 @@ PRESETS: dict[str, tuple[str, dict]] = {
         "Slower and finer: 256 px crops, more vertices and steps.",
         {
             "data.crop_size": 256,
-            "coarse.init.target_vertices": 2500,
+            "coarse.target_vertices": 2500,
             "motion.warmup_steps": 400,
             "motion.steps": 2000,
             "motion.hypotheses": 9,
@@ -433,7 +433,7 @@ PRESETS: dict[str, tuple[str, dict]] = {
         "A seconds-long smoke run for tests: 48 px crops, a few steps.",
         {
             "data.crop_size": 48,
-            "coarse.init.target_vertices": 300,
+            "coarse.target_vertices": 300,
             "coarse.steps": 10,
             "motion.warmup_steps": 5,
             "motion.steps": 10,

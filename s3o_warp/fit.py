@@ -200,7 +200,7 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
     from s3o_warp import coarse
 
     masks = data.masks.cpu().numpy() > 0.5
-    settings = cfg.coarse.init
+    settings = coarse.CoarseSettings(target_vertices=cfg.coarse.target_vertices)
     if cfg.coarse.canonical_frame is None:
         c, _ratios = coarse.canonical_frame(list(masks), settings, progress=False)
     else:

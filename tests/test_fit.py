@@ -71,7 +71,7 @@ def test_small_fit_raises_iou_and_writes_the_run_directory(tiny_sequence, tmp_pa
 
 def test_fit_of_a_small_clip_learns_the_quadrupeds_skeleton(small_sequence, tmp_path):
     """Four legs, a tail, a neck and a head (see :func:`_check_skeleton_shape` for the tolerances)."""
-    cfg = _cfg(**{"data.crop_size": 96, "coarse.init.target_vertices": 1200, "coarse.steps": 30,
+    cfg = _cfg(**{"data.crop_size": 96, "coarse.target_vertices": 1200, "coarse.steps": 30,
                   "motion.warmup_steps": 40, "motion.steps": 60})
     run = tmp_path / "run"
     metrics = fit(small_sequence, run, cfg, torch.device("cpu"))
