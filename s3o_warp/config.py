@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from s3o_warp.resample import ResampleSettings
 
 
 @dataclass
@@ -103,20 +102,6 @@ class MotionConfig:
     """Not in the paper: the vertex count of the resamplings from the first merge on (the skeleton refinement,
     skeleton.epochs after e1 + 1): a leg's parts need vertices for its joints to be placed and its bones to split
     (``skeleton.min_section_vertices``, ``min_mass``). 0 = resample_vertices."""
-    resample_method: str = "marching"
-    """How the mesh is resampled (``s3o_warp.resample``): marching (marching cubes of its distance field, like
-    LASR's and S3O's Manifold) or isotropic (pymeshlab's isotropic remeshing of the surface itself)."""
-    resample_max_lost: float = 0.05
-    """A resampling that would leave more than this fraction of the old vertices off the new surface is not used;
-    the mesh stays as it is until the next one (``resample.max_lost``)."""
-    resample_fallback: str = "isotropic"
-    """When a resampling by resample_method is not used (it would lose more than resample_max_lost), try this
-    method on the same mesh before keeping it: isotropic (pymeshlab; remeshes the surface itself, so a surface
-    crumpled finer than marching's grid survives), marching, or none."""
-    resample: ResampleSettings = field(default_factory=ResampleSettings)
-    """Every other setting of the even resampling (``s3o_warp.resample.ResampleSettings``: grid, repair, vertex cap,
-    smoothing, isotropic passes). Its method, target_vertices and max_lost are set by resample_method,
-    resample_vertices and resample_max_lost above and must stay at their defaults here."""
     hypothesis_root_only: bool = True
     """Score each hypothesis with only the root and camera free (the bones cannot absorb a wrong turn)."""
     hypothesis_score: str = "flow"
@@ -494,14 +479,6 @@ def _coerce(key: str, current, value, annotation: str):
             if not isinstance(value, str):
                 raise ValueError
             return value
-        if base.startswith("tuple"):
-            if isinstance(value, str):
-                value = [v for v in value.strip("()[] ").split(",") if v.strip()]
-            n = None if "..." in base else base.count(",") + 1  # tuple[float, ...]: any length
-            if not isinstance(value, (list, tuple)) or (n is not None and len(value) != n):
-                raise ValueError
-            kind = float if "float" in base else int
-            return tuple(kind(v) for v in value)
     except (TypeError, ValueError):
         raise ConfigError(
             f"config key '{key}' must be {base}, got {value!r} ({type(value).__name__}); e.g. {key}={current!r}"

@@ -363,28 +363,9 @@ class Fitter:
             if getattr(cfg.motion, k) < 0:
                 raise ConfigError(f"motion.{k} must be >= 0 (a vertex count; 0 = the coarse mesh's), got "
                                   f"{getattr(cfg.motion, k)}")
-        if not 0 <= cfg.motion.resample_max_lost <= 1:
-            raise ConfigError(f"motion.resample_max_lost must be in [0, 1] (a fraction of the old vertices; 1 = always "
-                              f"use the resampling), got {cfg.motion.resample_max_lost}")
         if cfg.motion.principal_point not in ("frame", "shared"):
             raise ConfigError(f"motion.principal_point must be 'frame' (one per frame, LASR's) or 'shared' (one for the "
                               f"video), got {cfg.motion.principal_point!r}")
-        if cfg.motion.resample_method not in ("marching", "isotropic"):
-            raise ConfigError(f"motion.resample_method must be 'marching' or 'isotropic', got {cfg.motion.resample_method!r}")
-        if cfg.motion.resample_fallback not in ("none", "marching", "isotropic"):
-            raise ConfigError(f"motion.resample_fallback must be 'none', 'marching' or 'isotropic', got "
-                              f"{cfg.motion.resample_fallback!r}")
-        self._resample_settings(cfg.motion.resample_method)  # a bad motion.resample.* fails now, not an epoch in
-        import importlib.util
-
-        self._has_meshlab = importlib.util.find_spec("pymeshlab") is not None
-        if cfg.motion.resample_epochs > 0 and not self._has_meshlab:  # say so now, not at the first resampling
-            if cfg.motion.resample_method == "isotropic":
-                raise ConfigError("motion.resample_method=isotropic needs pymeshlab: pip install pymeshlab (or "
-                                  "pip install 's3o-warp[remesh]'), or set motion.resample_method=marching")
-            if cfg.motion.resample_fallback == "isotropic":
-                log.warning("motion.resample_fallback=isotropic needs pymeshlab, which is not installed: a refused "
-                            "resampling keeps the mesh (pip install pymeshlab, or set motion.resample_fallback=none)")
         if cfg.skeleton.min_section_vertices < 1:
             raise ConfigError(f"skeleton.min_section_vertices must be >= 1 (vertices each new bone of a split owns), "
                               f"got {cfg.skeleton.min_section_vertices}")
@@ -1034,42 +1015,26 @@ class Fitter:
     def resample_mesh(self, refine: bool = False) -> None:
         """Even resampling (paper B): same surface, uniform vertices; colours carried, skinning follows the bones.
         ``refine``: a resampling of the skeleton refinement (``motion.refine_vertices``)."""
-        from s3o_warp.resample import even_resample
+        from s3o_warp.resample import METHODS, ResampleSettings, even_resample
 
         m, mc = self.model, self.cfg.motion
         target = (refine and mc.refine_vertices) or mc.resample_vertices or len(self.coarse.init.verts)
         n0 = m.verts.shape[0]
-        methods = [mc.resample_method]
-        fb = mc.resample_fallback
-        if fb not in ("none", mc.resample_method) and (fb != "isotropic" or self._has_meshlab):
-            methods.append(fb)
-        for method in methods:
-            if method != mc.resample_method:
-                log.info("even resampling: trying motion.resample_fallback=%s on the same mesh", method)
-            rs = self._resample_settings(method, int(target))
+        for method in METHODS:
+            if method != METHODS[0]:
+                log.info("even resampling: trying %s on the same mesh", method)
+            rs = ResampleSettings(method=method, target_vertices=int(target))
             v, f, col = even_resample(m.verts.detach(), m.faces, rs, attributes=m.color_logits.detach())
             kept = f.shape == m.faces.shape and torch.equal(f.to(m.faces.device), m.faces) and torch.equal(v, m.verts.detach())
             if not kept:
                 break
-        if not kept:  # else: refused (resample.max_lost), the mesh and the optimiser's state stay as they are
+        if not kept:  # else: refused (ResampleSettings.max_lost), the mesh and the optimiser's state stay as they are
             self._set_mesh(v, f, col)
         self._log({"phase": "eval", "step": self.step, "seconds": round(time.perf_counter() - self.t0, 3),
                    "what": "resample", "vertices_before": int(n0), "vertices_after": int(v.shape[0]), "kept": kept,
                    "method": None if kept else method})
         log.info("even resampling (%s): %d -> %d vertices%s", method, n0, v.shape[0],
                  " (not used: the mesh is kept)" if kept else "")
-
-    def _resample_settings(self, method: str, target: int | None = None):
-        """``motion.resample`` with the method, target count and refusal limit the motion settings give it."""
-        from s3o_warp.resample import ResampleSettings
-
-        mc, default = self.cfg.motion, ResampleSettings()
-        for name, own in (("method", "resample_method"), ("target_vertices", "resample_vertices"),
-                          ("max_lost", "resample_max_lost")):
-            if getattr(mc.resample, name) != getattr(default, name):
-                raise ConfigError(f"motion.resample.{name} is set by motion.{own}: set that instead and leave "
-                                  f"motion.resample.{name} at {getattr(default, name)!r}")
-        return mc.resample.replace(method=method, target_vertices=target, max_lost=mc.resample_max_lost)
 
     def _set_mesh(self, verts: torch.Tensor, faces: torch.Tensor, color_logits: torch.Tensor) -> None:
         """Swap the canonical mesh; the optimiser keeps every other parameter's state (and all learning rates)."""

@@ -55,21 +55,3 @@ def test_bad_toml_names_the_file_and_key(tmp_path):
         make_config("default", tmp_path / "missing.toml")
     with pytest.raises(ConfigError, match="unknown preset"):
         make_config("turbo")
-
-
-def test_tuple_settings_parse_at_their_own_length():
-    """``tuple[float, ...]`` takes any number of values."""
-    cfg = make_config("default", overrides=["motion.resample.dilate_steps=0.1"])
-    assert cfg.motion.resample.dilate_steps == (0.1,)
-    cfg = make_config("default", overrides=["motion.resample.dilate_steps=(0.1, 0.2, 0.4)"])
-    assert cfg.motion.resample.dilate_steps == (0.1, 0.2, 0.4)
-    with pytest.raises(ConfigError, match="'motion.resample.dilate_steps' must be tuple"):
-        make_config("default", overrides=["motion.resample.dilate_steps=a,b"])
-
-
-def test_the_resampling_settings_round_trip_through_toml(tmp_path):
-    cfg = make_config("default", overrides=["motion.resample.max_vertices_factor=1.5", "motion.resample.trials=6"])
-    save_toml(cfg, tmp_path / "config.toml")
-    again = make_config("default", tmp_path / "config.toml")
-    assert again.motion.resample.max_vertices_factor == 1.5 and again.motion.resample.trials == 6
-    assert to_dict(again) == to_dict(cfg)

@@ -336,11 +336,11 @@ def test_a_branch_refuses_other_settings_and_a_run_without_its_checkpoint(tiny_s
 
     ck = a / "checkpoints" / "branch.pt"
     state = torch.load(ck, map_location="cpu", weights_only=False)
-    del state["config"]["motion"]["resample"]
+    del state["config"]["motion"]["resample_epochs"]
     torch.save(state, ck)
     assert _branch_checkpoint(a, tmp_path / "e", _cfg(**over)) == ck
-    with pytest.raises(InputError, match=r"differ in motion.resample.trials \(4 there, 7 here\)"):
-        _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.resample.trials": 7}))
+    with pytest.raises(InputError, match=r"differ in motion.resample_epochs \(1 there, 2 here\)"):
+        _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.resample_epochs": 2}))
     # a setting whose default changed: a run without it had the earlier default, not today's
     del state["config"]["motion"]["principal_point"]
     torch.save(state, ck)
@@ -585,12 +585,6 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
     ("skeleton.merge_quantile=1", "merge_quantile"),
     ("motion.sweep_stride=-1", "sweep_stride"),
     ("skeleton.min_frames_fraction=1.5", "min_frames_fraction"),
-    ("motion.resample_method=manifold", "motion.resample_method"),
-    ("motion.resample_max_lost=1.5", "motion.resample_max_lost"),
-    ("motion.resample_fallback=manifold", "motion.resample_fallback"),
-    ("motion.resample.refine_step=2", "resample.refine_step"),
-    ("motion.resample.method=isotropic", "set by motion.resample_method"),
-    ("motion.resample.max_lost=0.5", "set by motion.resample_max_lost"),
     ("motion.polish_steps=-1", "motion.polish_steps"),
     ("motion.polish_lr_factor=0", "motion.polish_lr_factor"),
     ("skeleton.motion_frame=image", "motion_frame"),
@@ -606,18 +600,6 @@ def test_fitter_refuses_a_bad_setting_before_any_work(tiny_sequence, tmp_path, b
     coarse = coarse_model(data, cfg)
     with pytest.raises(ConfigError, match=names):
         Fitter(data, coarse, make_config("smoke", overrides=[bad]), tmp_path, torch.device("cpu"))
-
-
-def test_isotropic_resampling_without_pymeshlab_is_refused_before_the_fit(tiny_sequence, tmp_path, monkeypatch):
-    import importlib.util
-
-    cfg = _cfg(**{"coarse.steps": 2})
-    data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
-    real_find_spec = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "pymeshlab" else real_find_spec(name, *a))
-    with pytest.raises(ConfigError, match="needs pymeshlab"):
-        Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["motion.resample_method=isotropic"]),
-               tmp_path, torch.device("cpu"))
 
 
 def test_a_shared_principal_point_starts_where_the_per_frame_ones_do_and_stays_one(tiny_sequence, tmp_path):
@@ -1075,13 +1057,12 @@ def test_m_step_decides_mirror_partners_by_the_better_seen_one(tiny_sequence, tm
 
 
 @pytest.mark.parametrize("method", ["marching", "isotropic"])
-def test_even_resampling_in_the_fit_keeps_the_render_and_the_loss(tiny_sequence, tmp_path, method):
+def test_even_resampling_in_the_fit_keeps_the_render_and_the_loss(tiny_sequence, tmp_path, method, monkeypatch):
+    import s3o_warp.resample as rs
     from s3o_warp.kernels.raster import rasterize
 
-    if method == "isotropic":
-        pytest.importorskip("pymeshlab")
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
-    f.cfg.motion.resample_method = method
+    monkeypatch.setattr(rs, "METHODS", (method,))  # this method alone
     m, S = f.model, data.crop_size
 
     def state():
@@ -1111,7 +1092,7 @@ def test_even_resampling_in_the_fit_keeps_the_render_and_the_loss(tiny_sequence,
 
 
 def test_a_refused_resampling_keeps_the_mesh_and_its_optimiser_state(tiny_sequence, tmp_path, monkeypatch):
-    """When even_resample gives the mesh back (it would lose more than motion.resample_max_lost), the fit keeps its
+    """When even_resample gives the mesh back (it would lose more than ResampleSettings.max_lost), the fit keeps its
     vertex parameter, the vertices' Adam state and the Laplacian reference, and logs the resampling as kept."""
     import s3o_warp.resample as rs
 
@@ -1124,34 +1105,25 @@ def test_a_refused_resampling_keeps_the_mesh_and_its_optimiser_state(tiny_sequen
     seen = []
 
     def refuse(verts, faces, settings=None, attributes=None):
-        seen.append((settings.method, settings.max_lost, settings.max_vertices_factor, settings.target_vertices))
+        seen.append((settings.method, settings.target_vertices))
         return verts.detach().clone(), faces.detach().clone(), attributes.detach().clone()
 
     monkeypatch.setattr(rs, "even_resample", refuse)
-    monkeypatch.setattr(f, "_has_meshlab", True)
-    f.cfg.motion.resample_max_lost = 0.02
-    f.cfg.motion.resample.max_vertices_factor = 1.5
     verts, lap_ref, state = m.verts, f.lap_ref, {k: v.clone() for k, v in f.opt.state[m.verts].items()}
     f.resample_mesh()
-    # the fit's settings reach the resampling; refused by marching, the fallback is tried on the same mesh
+    # the target reaches the resampling; refused by marching, isotropic is tried on the same mesh
     n = len(f.coarse.init.verts)
-    assert seen == [("marching", 0.02, 1.5, n), ("isotropic", 0.02, 1.5, n)]
+    assert seen == [("marching", n), ("isotropic", n)]
     assert m.verts is verts and f.lap_ref is lap_ref
     for k, v in state.items():
         torch.testing.assert_close(f.opt.state[m.verts][k], v)
     assert f.history[-1]["what"] == "resample" and f.history[-1]["kept"] is True and f.history[-1]["method"] is None
-    seen.clear()
-    f.cfg.motion.resample_fallback = "none"
-    f.resample_mesh()
-    assert seen == [("marching", 0.02, 1.5, n)]
 
 
 def test_a_resampling_refused_by_marching_is_done_by_the_fallback(tiny_sequence, tmp_path, monkeypatch):
-    """motion.resample_fallback: when marching would lose too much, the other method's result is used (and
-    logged); without pymeshlab the isotropic fallback is skipped, not an error."""
+    """When marching would lose too much, isotropic remeshing's result is used (and logged)."""
     import s3o_warp.resample as rs
 
-    pytest.importorskip("pymeshlab")
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     m = f.model
     real = rs.even_resample
@@ -1169,11 +1141,6 @@ def test_a_resampling_refused_by_marching_is_done_by_the_fallback(tiny_sequence,
     assert seen == ["marching", "isotropic"]
     assert m.verts is not verts and f.edges.max() < m.verts.shape[0]
     assert f.history[-1]["kept"] is False and f.history[-1]["method"] == "isotropic"
-    seen.clear()
-    monkeypatch.setattr(f, "_has_meshlab", False)
-    verts = m.verts
-    f.resample_mesh()
-    assert seen == ["marching"] and m.verts is verts and f.history[-1]["kept"] is True
 
 
 def test_cli_fits_a_video_file_with_a_mask_folder(tiny_sequence, tmp_path):
