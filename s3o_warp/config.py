@@ -98,10 +98,6 @@ class MotionConfig:
     """Even resampling of the canonical mesh (paper B) every this many epochs of the joint phase; 0 = never."""
     resample_vertices: int = 0
     """Vertex count the resampled mesh aims at; 0 = the coarse mesh's count."""
-    refine_vertices: int = 0
-    """Not in the paper: the vertex count of the resamplings from the first merge on (the skeleton refinement,
-    skeleton.epochs after e1 + 1): a leg's parts need vertices for its joints to be placed and its bones to split
-    (``skeleton.min_section_vertices``, ``min_mass``). 0 = resample_vertices."""
     hypothesis_root_only: bool = True
     """Score each hypothesis with only the root and camera free (the bones cannot absorb a wrong turn)."""
     hypothesis_score: str = "flow"

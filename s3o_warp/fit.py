@@ -35,7 +35,7 @@ CHECKPOINT_VERSION = 2
 BRANCH_CHECKPOINT = "branch.pt"  # in <run>/checkpoints: the state before the first M-step that reads t_o
 BRANCH_LOG = "branch.log.jsonl"
 BRANCH_MAY_DIFFER = ("skeleton.t_o", "skeleton.merge_quantile", "skeleton.t_u", "skeleton.split_end_bones",
-                     "skeleton.t_d", "skeleton.min_bone_length", "skeleton.split_inner_bones", "motion.refine_vertices",
+                     "skeleton.t_d", "skeleton.min_bone_length", "skeleton.split_inner_bones",
                      "motion.polish_steps", "motion.polish_lr_factor")
 """The settings a branched fit may change: the refinement and the polish after the joint phase read them only
 after the branch (and output.*, preset: no effect on the fit)."""
@@ -359,10 +359,9 @@ class Fitter:
         if cfg.motion.polish_steps < 0 or not cfg.motion.polish_lr_factor > 0:
             raise ConfigError(f"motion.polish_steps must be >= 0 (0 = off) and motion.polish_lr_factor > 0, got "
                               f"{cfg.motion.polish_steps} and {cfg.motion.polish_lr_factor}")
-        for k in ("resample_vertices", "refine_vertices"):
-            if getattr(cfg.motion, k) < 0:
-                raise ConfigError(f"motion.{k} must be >= 0 (a vertex count; 0 = the coarse mesh's), got "
-                                  f"{getattr(cfg.motion, k)}")
+        if cfg.motion.resample_vertices < 0:
+            raise ConfigError(f"motion.resample_vertices must be >= 0 (a vertex count; 0 = the coarse mesh's), got "
+                              f"{cfg.motion.resample_vertices}")
         if cfg.motion.principal_point not in ("frame", "shared"):
             raise ConfigError(f"motion.principal_point must be 'frame' (one per frame, LASR's) or 'shared' (one for the "
                               f"video), got {cfg.motion.principal_point!r}")
@@ -1009,16 +1008,15 @@ class Fitter:
             self._good = None  # shapes changed: the NaN roll-back target is taken anew
         every = self.cfg.motion.resample_epochs
         if every > 0 and (epoch + 1) % every == 0:
-            self.resample_mesh(refine=self.cfg.skeleton.method == "s3o" and epoch >= self.cfg.skeleton.e1 + 1)
+            self.resample_mesh()
 
     @torch.no_grad()
-    def resample_mesh(self, refine: bool = False) -> None:
-        """Even resampling (paper B): same surface, uniform vertices; colours carried, skinning follows the bones.
-        ``refine``: a resampling of the skeleton refinement (``motion.refine_vertices``)."""
+    def resample_mesh(self) -> None:
+        """Even resampling (paper B): same surface, uniform vertices; colours carried, skinning follows the bones."""
         from s3o_warp.resample import METHODS, ResampleSettings, even_resample
 
-        m, mc = self.model, self.cfg.motion
-        target = (refine and mc.refine_vertices) or mc.resample_vertices or len(self.coarse.init.verts)
+        m = self.model
+        target = self.cfg.motion.resample_vertices or len(self.coarse.init.verts)
         n0 = m.verts.shape[0]
         for method in METHODS:
             if method != METHODS[0]:
@@ -1204,7 +1202,7 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
     ``sequence_dir`` is a sequence folder, a DAVIS root (with ``name``), a DAVIS sequence folder, or a
     video file / frame folder with a separate ``masks`` folder (see ``s3o_warp.video.open_sequence``).
     ``branch_from``: a finished or running fit of the same sequence whose settings differ from ``cfg`` only in
-    ``skeleton.t_o``, ``merge_quantile``, ``t_u``, ``split_end_bones``, ``split_inner_bones``, ``t_d``, ``min_bone_length``, ``motion.refine_vertices`` or ``motion.polish_*`` (:data:`BRANCH_MAY_DIFFER`: read only from the branch on); the fit starts from its ``checkpoints/branch.pt`` (the state just
+    ``skeleton.t_o``, ``merge_quantile``, ``t_u``, ``split_end_bones``, ``split_inner_bones``, ``t_d``, ``min_bone_length`` or ``motion.polish_*`` (:data:`BRANCH_MAY_DIFFER`: read only from the branch on); the fit starts from its ``checkpoints/branch.pt`` (the state just
     before the first merge) and its cached flow, so a t_o study pays for the shared part once (the rest of the run directory is this fit's own). With
     ``resume`` a checkpoint of ``out_dir`` itself comes first.
     """
