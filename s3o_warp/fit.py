@@ -31,7 +31,9 @@ from s3o_warp.model import ModelInit, S3OModel, root_for_shared_principal_point
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_VERSION = 2
+CHECKPOINT_VERSION = 3
+"""Format of checkpoints and branch checkpoints, bumped when what they hold or the settings they record change; a
+checkpoint of another version is refused (its run must be refit)."""
 BRANCH_CHECKPOINT = "branch.pt"  # in <run>/checkpoints: the state before the first M-step that reads t_o
 BRANCH_LOG = "branch.log.jsonl"
 BRANCH_MAY_DIFFER = ("skeleton.t_o", "skeleton.merge_quantile", "skeleton.t_u", "skeleton.split_end_bones",
@@ -39,10 +41,6 @@ BRANCH_MAY_DIFFER = ("skeleton.t_o", "skeleton.merge_quantile", "skeleton.t_u", 
                      "motion.polish_steps", "motion.polish_lr_factor")
 """The settings a branched fit may change: the refinement and the polish after the joint phase read them only
 after the branch (and output.*, preset: no effect on the fit)."""
-EARLIER_DEFAULTS = {"motion.principal_point": "frame",
-                    "skeleton.split_inner_bones": False, "skeleton.joint_samples": 1}  # both changed in session 34
-"""Settings whose default changed since runs were first written without them: the value such a run had (a parent
-run's or a checkpoint's config that lacks the key is read with it, not with today's default)."""
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -1114,17 +1112,13 @@ class Fitter:
 
     def load_checkpoint(self, path: Path) -> None:
         st = torch.load(path, map_location=self.device, weights_only=False)
-        if st.get("version") != CHECKPOINT_VERSION:
-            raise InputError(
-                f"checkpoint {path} has version {st.get('version')}, this s3o-warp writes {CHECKPOINT_VERSION}; "
-                "start a fresh run (drop --resume or use another --out)"
-            )
+        _check_version(st, f"checkpoint {path}", "start a fresh run (drop --resume or use another --out)")
         if st.get("sequence") != self.data.name or st.get("num_frames") != self.data.num_frames:
             raise InputError(
                 f"checkpoint {path} belongs to sequence '{st.get('sequence')}' ({st.get('num_frames')} frames), "
                 f"not '{self.data.name}' ({self.data.num_frames} frames); use another --out or drop --resume"
             )
-        pp = _flat(st.get("config") or {}).get("motion.principal_point", EARLIER_DEFAULTS["motion.principal_point"])
+        pp = st["config"]["motion"]["principal_point"]
         if pp != self.cfg.motion.principal_point:
             raise InputError(f"checkpoint {path} was written with motion.principal_point={pp}, this fit has "
                              f"{self.cfg.motion.principal_point}; add --set motion.principal_point={pp} to continue it, "
@@ -1249,6 +1243,15 @@ def _flat(d: dict, prefix: str = "") -> dict:
     return out
 
 
+def _check_version(state: dict, what: str, fix: str) -> None:
+    """InputError, one line naming ``what`` and the ``fix``, unless ``state`` is a checkpoint of this format."""
+    v = state.get("version")
+    if v != CHECKPOINT_VERSION:
+        age = "an earlier" if v is None or (isinstance(v, int) and v < CHECKPOINT_VERSION) else "another"
+        raise InputError(f"{what} was written by {age} version of s3o-warp (checkpoint version {v}, this one reads "
+                         f"{CHECKPOINT_VERSION}) and must be refit: {fix}")
+
+
 def _branch_checkpoint(parent: Path, out_dir: Path, cfg: Config) -> Path:
     """The branch checkpoint of run ``parent`` for a fit with ``cfg`` into ``out_dir``; InputError when it is
     missing or the settings differ in more than :data:`BRANCH_MAY_DIFFER`."""
@@ -1259,10 +1262,10 @@ def _branch_checkpoint(parent: Path, out_dir: Path, cfg: Config) -> Path:
         raise InputError(f"--branch-from {parent}: no {ck.relative_to(parent)} there (it is written just before the "
                          "first merge of a fit with skeleton.method=s3o, skeleton.epochs >= skeleton.e1 + 3 and "
                          "output.branch_checkpoint=true); fit that run first or drop --branch-from")
-    theirs = _flat(torch.load(ck, map_location="cpu", weights_only=False)["config"])
+    st = torch.load(ck, map_location="cpu", weights_only=False)
+    _check_version(st, f"--branch-from {parent}: its {ck.relative_to(parent)}", "refit that run, then branch from it")
+    theirs = _flat(st["config"])
     ours = _flat(to_dict(cfg))
-    defaults = {**_flat(to_dict(Config())), **EARLIER_DEFAULTS}  # a setting newer than the parent's run: its default then
-    theirs = {**{k: v for k, v in defaults.items() if k not in theirs}, **theirs}
     free = set(BRANCH_MAY_DIFFER) | {"preset"}
     differ = sorted(k for k in set(theirs) | set(ours)
                     if k not in free and not k.startswith("output.") and theirs.get(k) != ours.get(k))

@@ -16,6 +16,7 @@ from s3o_warp import video_flow
 from s3o_warp.config import make_config
 from s3o_warp.errors import ConfigError, InputError
 from s3o_warp.fit import (
+    CHECKPOINT_VERSION,
     FitInterrupted,
     Fitter,
     coarse_model,
@@ -328,28 +329,23 @@ def test_a_branch_refuses_other_settings_and_a_run_without_its_checkpoint(tiny_s
     with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o, skeleton.merge_quantile, skeleton.t_u, skeleton.split_end_bones, skeleton.t_d, skeleton.min_bone_length, skeleton.split_inner_bones, motion.polish_steps, motion.polish_lr_factor may differ"):
         fit(tiny_sequence, tmp_path / "b", _cfg(**over, **{"motion.lr_bones": 0.123}), torch.device("cpu"), branch_from=a)
     assert not (tmp_path / "b").exists()  # refused before any work
-    # a run from before a setting existed ran with its default: that setting does not count as a difference
+    # a setting the parent's run lacks is a difference, not read at today's default
     from s3o_warp.fit import _branch_checkpoint
 
     ck = a / "checkpoints" / "branch.pt"
     state = torch.load(ck, map_location="cpu", weights_only=False)
+    assert _branch_checkpoint(a, tmp_path / "e", _cfg(**over)) == ck
     del state["config"]["motion"]["resample_epochs"]
     torch.save(state, ck)
-    assert _branch_checkpoint(a, tmp_path / "e", _cfg(**over)) == ck
-    with pytest.raises(InputError, match=r"differ in motion.resample_epochs \(1 there, 2 here\)"):
-        _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.resample_epochs": 2}))
-    # a setting whose default changed: a run without it had the earlier default, not today's
-    del state["config"]["motion"]["principal_point"]
+    with pytest.raises(InputError, match=r"differ in motion.resample_epochs \(None there, 1 here\)"):
+        _branch_checkpoint(a, tmp_path / "e", _cfg(**over))
+    # a parent written by an earlier version of the checkpoints is refused in one line: refit it
+    state["version"] = CHECKPOINT_VERSION - 1
     torch.save(state, ck)
-    assert _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.principal_point": "frame"})) == ck
-    with pytest.raises(InputError, match=r"differ in motion.principal_point \('frame' there, 'shared' here\)"):
-        _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.principal_point": "shared"}))
-    del state["config"]["skeleton"]["joint_samples"]  # 1 until session 34, 4 now
-    torch.save(state, ck)
-    assert _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.principal_point": "frame",
-                                                               "skeleton.joint_samples": 1})) == ck
-    with pytest.raises(InputError, match=r"differ in skeleton.joint_samples \(1 there, 4 here\)"):
-        _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.principal_point": "frame"}))
+    with pytest.raises(InputError, match=r"^--branch-from .*checkpoints/branch.pt was written by an earlier version "
+                                         r"of s3o-warp .* and must be refit: refit that run, then branch from it$"):
+        fit(tiny_sequence, tmp_path / "f", _cfg(**over), torch.device("cpu"), branch_from=a)
+    assert not (tmp_path / "f").exists()
     with pytest.raises(InputError, match="that is the run directory itself"):
         fit(tiny_sequence, a, _cfg(**over), torch.device("cpu"), branch_from=a)
     short = tmp_path / "short"  # 3 epochs, e1 1: the last M-step is the upsampling, t_o is never read
@@ -379,7 +375,11 @@ def test_resume_refuses_a_checkpoint_of_another_sequence(tiny_sequence, tmp_path
     st = torch.load(ck, weights_only=False)
     st["version"] = 999
     torch.save(st, ck)
-    with pytest.raises(InputError, match="version 999"):
+    with pytest.raises(InputError, match="another version of s3o-warp \\(checkpoint version 999"):
+        fit(tiny_sequence, run, cfg, torch.device("cpu"), resume=True)
+    st["version"] = CHECKPOINT_VERSION - 1
+    torch.save(st, ck)
+    with pytest.raises(InputError, match="written by an earlier version of s3o-warp .* must be refit"):
         fit(tiny_sequence, run, cfg, torch.device("cpu"), resume=True)
 
 
