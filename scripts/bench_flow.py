@@ -97,7 +97,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", nargs="+", default=["fox120", "horse"], help="synthetic cases of bench_fit.py")
     ap.add_argument("--presets", nargs="+", default=["medium"], help="DIS presets (data.flow_preset)")
     ap.add_argument("--finest-scales", nargs="+", default=["preset", "0"],
-                    help="DIS finest pyramid levels; 'preset' = the preset's own (the fit uses video_flow.FLOW_FINEST_SCALE)")
+                    help="DIS finest pyramid levels; 'preset' = the preset's own (the fit's: FLOW_FINEST_SCALE)")
     ap.add_argument("--crop-size", type=int, default=None, help="data.crop_size (default: the default preset's)")
     ap.add_argument("--out-dir", default=str(REPO / "runs" / "bench"), help="where sequences are rendered (bench_fit.py's)")
     args = ap.parse_args(argv)

@@ -429,7 +429,8 @@ def test_compute_flow_cache_hit(tmp_path, monkeypatch):
     assert pair.flow_fwd.shape == (32, 32, 2) and pair.conf_bwd.shape == (32, 32)
     assert isinstance(pair.flow_fwd.base, np.memmap) or isinstance(pair.flow_fwd, np.memmap)
     c2f = seq.crop_to_frame
-    direct = pair_flow(seq.image(1), seq.image(2), c2f[1], c2f[2], 32, 1.0, make_dis("fast", video_flow.FLOW_FINEST_SCALE))
+    dis = make_dis("fast", video_flow.FLOW_FINEST_SCALE)
+    direct = pair_flow(seq.image(1), seq.image(2), c2f[1], c2f[2], 32, video_flow.FLOW_FB_SIGMA, dis)
     np.testing.assert_array_equal(np.asarray(pair.flow_fwd), direct[..., 0:2])
 
     seq2 = open_sequence(root, cfg=cfg)
