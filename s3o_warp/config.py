@@ -9,7 +9,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 
-
 @dataclass
 class DataConfig:
     """How a sequence is read, cropped and given optical flow (``s3o_warp.video``)."""

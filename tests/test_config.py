@@ -55,3 +55,13 @@ def test_bad_toml_names_the_file_and_key(tmp_path):
         make_config("default", tmp_path / "missing.toml")
     with pytest.raises(ConfigError, match="unknown preset"):
         make_config("turbo")
+
+
+def test_the_config_imports_nothing_of_the_method():
+    """config.py sits at the bottom of the imports: reading settings loads no part of the method."""
+    import subprocess
+    import sys
+
+    code = "import sys, s3o_warp.config; print(sorted(m for m in sys.modules if m.startswith('s3o_warp.')))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "['s3o_warp.config']", out
