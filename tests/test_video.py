@@ -397,7 +397,8 @@ def test_flow_confidence_low_where_occluded():
 
 def test_finest_scale_undoes_small_part_bias():
     """A small textured part moving over a still background (a leg in a low-resolution crop): DIS at the medium
-    preset's finest level (half resolution) sees it move 10-15 % too little; ``flow_finest_scale=0`` within 5 %."""
+    preset's finest level (half resolution) sees it move 10-15 % too little; level 0 (``FLOW_FINEST_SCALE``) within
+    5 %."""
     H = W = 96
     yy, xx = np.mgrid[0:H, 0:W]
     d = np.array([1.5, -0.8])
