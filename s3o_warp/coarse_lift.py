@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -317,7 +317,7 @@ def ellipsoid_union_mesh(coarse: Coarse3D, target_vertices: int | None = None,
 
     s = settings or CoarseSettings()
     if target_vertices is not None:
-        s = s.replace(target_vertices=int(target_vertices))
+        s = replace(s, target_vertices=int(target_vertices))
     target = s.target_vertices
     smooth = s.smooth_max * float(coarse.radii[:, 1:].mean())
     # first guess: surface area of the ellipsoids (Knud Thomsen's approximation) / target

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import cv2
@@ -23,7 +23,6 @@ from skimage.morphology import medial_axis, skeletonize
 from tqdm import tqdm
 
 from s3o_warp.errors import ConfigError, InputError
-from s3o_warp.settings import SettingsReplace
 
 log = logging.getLogger(__name__)
 
@@ -35,10 +34,9 @@ _NEIGHBOURS = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1,
 
 
 @dataclass
-class CoarseSettings(SettingsReplace):
-    """Every setting of the coarse model initialisation (Phase 1), with its default."""
-
-    _section = "coarse"
+class CoarseSettings:
+    """The constants of the coarse model initialisation (Phase 1): the method's, not a user's; the fit sets only
+    ``target_vertices`` (``coarse.target_vertices``). Tests build their own to vary one."""
 
     smooth_sigma: float = 1.0
     """Gaussian blur (pixels) of the mask before thinning, re-thresholded at 0.5; 0 = none (calms jagged masks)."""
@@ -107,29 +105,29 @@ class CoarseSettings(SettingsReplace):
                     "dz_fraction", "junction_dz_fraction", "taubin_iterations", "canonical_size")
         for name in positive:
             if getattr(self, name) < 0:
-                raise ConfigError(f"coarse.{name} must be >= 0, got {getattr(self, name)}; set a non-negative value")
+                raise ConfigError(f"CoarseSettings.{name} must be >= 0, got {getattr(self, name)}")
         for name in ("sym_length_ratio", "sym_radius_ratio"):
             if getattr(self, name) < 1:
-                raise ConfigError(f"coarse.{name} must be >= 1 (a max/min ratio), got {getattr(self, name)}")
+                raise ConfigError(f"CoarseSettings.{name} must be >= 1 (a max/min ratio), got {getattr(self, name)}")
         if not 0 < self.sym_max_angle_deg <= 180:
-            raise ConfigError(f"coarse.sym_max_angle_deg must be in (0, 180], got {self.sym_max_angle_deg}")
+            raise ConfigError(f"CoarseSettings.sym_max_angle_deg must be in (0, 180], got {self.sym_max_angle_deg}")
         for name in ("canonical_tolerance", "leg_band"):
             if not 0 < getattr(self, name) <= 1:
-                raise ConfigError(f"coarse.{name} must be in (0, 1], got {getattr(self, name)}")
+                raise ConfigError(f"CoarseSettings.{name} must be in (0, 1], got {getattr(self, name)}")
         if not 0 <= self.canonical_stride_tolerance <= 1:
-            raise ConfigError(f"coarse.canonical_stride_tolerance must be in [0, 1], got "
+            raise ConfigError(f"CoarseSettings.canonical_stride_tolerance must be in [0, 1], got "
                               f"{self.canonical_stride_tolerance}; 0 turns the stride rule off")
         if self.target_vertices < 100:
             raise ConfigError(f"coarse.target_vertices must be >= 100, got {self.target_vertices}")
         if not 0 < self.vertex_tolerance < 1:
-            raise ConfigError(f"coarse.vertex_tolerance must be in (0, 1), got {self.vertex_tolerance}")
+            raise ConfigError(f"CoarseSettings.vertex_tolerance must be in (0, 1), got {self.vertex_tolerance}")
         if self.mesh_trials < 1:
-            raise ConfigError(f"coarse.mesh_trials must be >= 1, got {self.mesh_trials}")
+            raise ConfigError(f"CoarseSettings.mesh_trials must be >= 1, got {self.mesh_trials}")
         if self.precision_sharpness <= 0:
-            raise ConfigError(f"coarse.precision_sharpness must be > 0, got {self.precision_sharpness}")
+            raise ConfigError(f"CoarseSettings.precision_sharpness must be > 0, got {self.precision_sharpness}")
         if self.skeleton_method not in ("skeletonize", "medial_axis"):
             raise ConfigError(
-                f"coarse.skeleton_method must be 'skeletonize' or 'medial_axis', got {self.skeleton_method!r}")
+                f"CoarseSettings.skeleton_method must be 'skeletonize' or 'medial_axis', got {self.skeleton_method!r}")
 
 
 @dataclass
@@ -480,7 +478,7 @@ def skeleton_2d(mask, settings: CoarseSettings | None = None, *, prune_factor: f
     s = settings or CoarseSettings()
     over = {k: v for k, v in (("prune_factor", prune_factor), ("merge_factor", merge_factor)) if v is not None}
     if over:
-        s = s.replace(**over)
+        s = replace(s, **over)
     m = _clean_mask(_check_mask(mask), s)
     if s.skeleton_method == "medial_axis":
         skel = medial_axis(m)

@@ -8,9 +8,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from s3o_warp.coarse_skeleton import CoarseSettings
-from s3o_warp.resample import ResampleSettings
-
 
 @dataclass
 class DataConfig:
@@ -24,40 +21,24 @@ class DataConfig:
     """Side of the square crop as a multiple of the mask bounding box's longer side."""
     flow_preset: str = "medium"
     """OpenCV DIS optical-flow preset: ultrafast, fast or medium."""
-    flow_finest_scale: int | None = 0
-    """DIS's finest pyramid level: 0 = the flow canvas's full resolution, 1 = half (the medium preset's own), 2 = a
-    quarter (fast, ultrafast); None = the preset's. At the preset's level the synthetic renders' flow is 0.87-0.90 of
-    the true motion, at 0 0.96-0.97 (``scripts/bench_flow.py``)."""
-    flow_upsample: float = 1.0
-    """Flow canvas resolution: 1 = the finer of the frame and the crops; 2 = twice as fine (thin legs a few pixels
-    wide then span DIS's patches), at four times the flow's cost."""
-    flow_fb_sigma: float = 1.0
-    """Forward-backward consistency: confidence = exp(-|f + b(x + f)|^2 / (2 sigma^2)), sigma in crop pixels."""
     fps: float = 30.0
     """Frame rate of image-folder sequences (DAVIS included); a video file's own frame rate wins when it has one."""
     mask_threshold: int = 127
     """Grey-level and RGB masks: foreground = value > mask_threshold (0-255 scale)."""
-    crop_background: tuple[int, int, int] = (0, 0, 0)
-    """RGB colour given to crop pixels that fall outside the frame (masks get 0 there)."""
     largest_blob: bool = True
     """Masks with several disconnected blobs: keep the largest and the fragments near it (a warning names the
     frames); false keeps all."""
-    blob_gap: float = 0.05
-    """Fragments within this fraction of the largest blob's bbox diagonal belong to the object (thin legs break off)."""
-    border_weight: float = 0.3
-    """Silhouette-loss weight of frames where the object touches the frame border (it leaves the frame)."""
     resident_max_frames: int = 400
     """Sequences up to this many frames keep crops and flow in (device) memory; longer ones are streamed from disk."""
-    frame_cache_size: int = 4
-    """Decoded frames (image and mask) a sequence keeps in memory; others are read from disk on demand."""
 
 
 @dataclass
 class CoarseConfig:
     """Phase 1 (paper 3.2): 2D skeleton of the canonical frame, lift to ellipsoids, coarse shape fit."""
 
-    init: CoarseSettings = field(default_factory=lambda: CoarseSettings(target_vertices=1200))
-    """2D skeleton, lift and initial-mesh settings (``s3o_warp.coarse``); target_vertices sets the mesh size."""
+    target_vertices: int = 1200
+    """Vertex count of the initial mesh (the union of the lifted ellipsoids; its marching-cubes resolution is searched
+    for it), and of every resampling unless motion.resample_vertices is set (>= 100)."""
     depth: float = 3.0
     """Depth (object-frame units) at which the canonical frame's 2D skeleton is lifted."""
     fov_degrees: float = 45.0
@@ -116,24 +97,6 @@ class MotionConfig:
     """Even resampling of the canonical mesh (paper B) every this many epochs of the joint phase; 0 = never."""
     resample_vertices: int = 0
     """Vertex count the resampled mesh aims at; 0 = the coarse mesh's count."""
-    refine_vertices: int = 0
-    """Not in the paper: the vertex count of the resamplings from the first merge on (the skeleton refinement,
-    skeleton.epochs after e1 + 1): a leg's parts need vertices for its joints to be placed and its bones to split
-    (``skeleton.min_section_vertices``, ``min_mass``). 0 = resample_vertices."""
-    resample_method: str = "marching"
-    """How the mesh is resampled (``s3o_warp.resample``): marching (marching cubes of its distance field, like
-    LASR's and S3O's Manifold) or isotropic (pymeshlab's isotropic remeshing of the surface itself)."""
-    resample_max_lost: float = 0.05
-    """A resampling that would leave more than this fraction of the old vertices off the new surface is not used;
-    the mesh stays as it is until the next one (``resample.max_lost``)."""
-    resample_fallback: str = "isotropic"
-    """When a resampling by resample_method is not used (it would lose more than resample_max_lost), try this
-    method on the same mesh before keeping it: isotropic (pymeshlab; remeshes the surface itself, so a surface
-    crumpled finer than marching's grid survives), marching, or none."""
-    resample: ResampleSettings = field(default_factory=ResampleSettings)
-    """Every other setting of the even resampling (``s3o_warp.resample.ResampleSettings``: grid, repair, vertex cap,
-    smoothing, isotropic passes). Its method, target_vertices and max_lost are set by resample_method,
-    resample_vertices and resample_max_lost above and must stay at their defaults here."""
     hypothesis_root_only: bool = True
     """Score each hypothesis with only the root and camera free (the bones cannot absorb a wrong turn)."""
     hypothesis_score: str = "flow"
@@ -440,7 +403,7 @@ PRESETS: dict[str, tuple[str, dict]] = {
         "Slower and finer: 256 px crops, more vertices and steps.",
         {
             "data.crop_size": 256,
-            "coarse.init.target_vertices": 2500,
+            "coarse.target_vertices": 2500,
             "motion.warmup_steps": 400,
             "motion.steps": 2000,
             "motion.hypotheses": 9,
@@ -450,7 +413,7 @@ PRESETS: dict[str, tuple[str, dict]] = {
         "A seconds-long smoke run for tests: 48 px crops, a few steps.",
         {
             "data.crop_size": 48,
-            "coarse.init.target_vertices": 300,
+            "coarse.target_vertices": 300,
             "coarse.steps": 10,
             "motion.warmup_steps": 5,
             "motion.steps": 10,
@@ -511,14 +474,6 @@ def _coerce(key: str, current, value, annotation: str):
             if not isinstance(value, str):
                 raise ValueError
             return value
-        if base.startswith("tuple"):
-            if isinstance(value, str):
-                value = [v for v in value.strip("()[] ").split(",") if v.strip()]
-            n = None if "..." in base else base.count(",") + 1  # tuple[float, ...]: any length
-            if not isinstance(value, (list, tuple)) or (n is not None and len(value) != n):
-                raise ValueError
-            kind = float if "float" in base else int
-            return tuple(kind(v) for v in value)
     except (TypeError, ValueError):
         raise ConfigError(
             f"config key '{key}' must be {base}, got {value!r} ({type(value).__name__}); e.g. {key}={current!r}"

@@ -31,18 +31,16 @@ from s3o_warp.model import ModelInit, S3OModel, root_for_shared_principal_point
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_VERSION = 2
+CHECKPOINT_VERSION = 3
+"""Format of checkpoints and branch checkpoints, bumped when what they hold or the settings they record change; a
+checkpoint of another version is refused (its run must be refit)."""
 BRANCH_CHECKPOINT = "branch.pt"  # in <run>/checkpoints: the state before the first M-step that reads t_o
 BRANCH_LOG = "branch.log.jsonl"
 BRANCH_MAY_DIFFER = ("skeleton.t_o", "skeleton.merge_quantile", "skeleton.t_u", "skeleton.split_end_bones",
-                     "skeleton.t_d", "skeleton.min_bone_length", "skeleton.split_inner_bones", "motion.refine_vertices",
+                     "skeleton.t_d", "skeleton.min_bone_length", "skeleton.split_inner_bones",
                      "motion.polish_steps", "motion.polish_lr_factor")
 """The settings a branched fit may change: the refinement and the polish after the joint phase read them only
 after the branch (and output.*, preset: no effect on the fit)."""
-EARLIER_DEFAULTS = {"motion.principal_point": "frame",
-                    "skeleton.split_inner_bones": False, "skeleton.joint_samples": 1}  # both changed in session 34
-"""Settings whose default changed since runs were first written without them: the value such a run had (a parent
-run's or a checkpoint's config that lacks the key is read with it, not with today's default)."""
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -169,7 +167,7 @@ def prepare_data(sequence_dir: Path, cfg: Config, run_dir: Path, device: torch.d
         conf_fwd=FrameStore(_PairField(flow, "conf_fwd"), device, resident=resident),
         sequence_dir=Path(sequence_dir),
         frame_weight=torch.as_tensor(
-            np.where(np.asarray(seq.touches_border), cfg.data.border_weight, 1.0), dtype=torch.float32, device=device
+            np.where(np.asarray(seq.touches_border), video.BORDER_WEIGHT, 1.0), dtype=torch.float32, device=device
         ),
         open_kwargs=open_kwargs,
         mask_dir=Path(seq.mask_files[0]).parent,
@@ -200,7 +198,7 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
     from s3o_warp import coarse
 
     masks = data.masks.cpu().numpy() > 0.5
-    settings = cfg.coarse.init
+    settings = coarse.CoarseSettings(target_vertices=cfg.coarse.target_vertices)
     if cfg.coarse.canonical_frame is None:
         c, _ratios = coarse.canonical_frame(list(masks), settings, progress=False)
     else:
@@ -359,32 +357,12 @@ class Fitter:
         if cfg.motion.polish_steps < 0 or not cfg.motion.polish_lr_factor > 0:
             raise ConfigError(f"motion.polish_steps must be >= 0 (0 = off) and motion.polish_lr_factor > 0, got "
                               f"{cfg.motion.polish_steps} and {cfg.motion.polish_lr_factor}")
-        for k in ("resample_vertices", "refine_vertices"):
-            if getattr(cfg.motion, k) < 0:
-                raise ConfigError(f"motion.{k} must be >= 0 (a vertex count; 0 = the coarse mesh's), got "
-                                  f"{getattr(cfg.motion, k)}")
-        if not 0 <= cfg.motion.resample_max_lost <= 1:
-            raise ConfigError(f"motion.resample_max_lost must be in [0, 1] (a fraction of the old vertices; 1 = always "
-                              f"use the resampling), got {cfg.motion.resample_max_lost}")
+        if cfg.motion.resample_vertices < 0:
+            raise ConfigError(f"motion.resample_vertices must be >= 0 (a vertex count; 0 = the coarse mesh's), got "
+                              f"{cfg.motion.resample_vertices}")
         if cfg.motion.principal_point not in ("frame", "shared"):
             raise ConfigError(f"motion.principal_point must be 'frame' (one per frame, LASR's) or 'shared' (one for the "
                               f"video), got {cfg.motion.principal_point!r}")
-        if cfg.motion.resample_method not in ("marching", "isotropic"):
-            raise ConfigError(f"motion.resample_method must be 'marching' or 'isotropic', got {cfg.motion.resample_method!r}")
-        if cfg.motion.resample_fallback not in ("none", "marching", "isotropic"):
-            raise ConfigError(f"motion.resample_fallback must be 'none', 'marching' or 'isotropic', got "
-                              f"{cfg.motion.resample_fallback!r}")
-        self._resample_settings(cfg.motion.resample_method)  # a bad motion.resample.* fails now, not an epoch in
-        import importlib.util
-
-        self._has_meshlab = importlib.util.find_spec("pymeshlab") is not None
-        if cfg.motion.resample_epochs > 0 and not self._has_meshlab:  # say so now, not at the first resampling
-            if cfg.motion.resample_method == "isotropic":
-                raise ConfigError("motion.resample_method=isotropic needs pymeshlab: pip install pymeshlab (or "
-                                  "pip install 's3o-warp[remesh]'), or set motion.resample_method=marching")
-            if cfg.motion.resample_fallback == "isotropic":
-                log.warning("motion.resample_fallback=isotropic needs pymeshlab, which is not installed: a refused "
-                            "resampling keeps the mesh (pip install pymeshlab, or set motion.resample_fallback=none)")
         if cfg.skeleton.min_section_vertices < 1:
             raise ConfigError(f"skeleton.min_section_vertices must be >= 1 (vertices each new bone of a split owns), "
                               f"got {cfg.skeleton.min_section_vertices}")
@@ -1028,48 +1006,31 @@ class Fitter:
             self._good = None  # shapes changed: the NaN roll-back target is taken anew
         every = self.cfg.motion.resample_epochs
         if every > 0 and (epoch + 1) % every == 0:
-            self.resample_mesh(refine=self.cfg.skeleton.method == "s3o" and epoch >= self.cfg.skeleton.e1 + 1)
+            self.resample_mesh()
 
     @torch.no_grad()
-    def resample_mesh(self, refine: bool = False) -> None:
-        """Even resampling (paper B): same surface, uniform vertices; colours carried, skinning follows the bones.
-        ``refine``: a resampling of the skeleton refinement (``motion.refine_vertices``)."""
-        from s3o_warp.resample import even_resample
+    def resample_mesh(self) -> None:
+        """Even resampling (paper B): same surface, uniform vertices; colours carried, skinning follows the bones."""
+        from s3o_warp.resample import METHODS, ResampleSettings, even_resample
 
-        m, mc = self.model, self.cfg.motion
-        target = (refine and mc.refine_vertices) or mc.resample_vertices or len(self.coarse.init.verts)
+        m = self.model
+        target = self.cfg.motion.resample_vertices or len(self.coarse.init.verts)
         n0 = m.verts.shape[0]
-        methods = [mc.resample_method]
-        fb = mc.resample_fallback
-        if fb not in ("none", mc.resample_method) and (fb != "isotropic" or self._has_meshlab):
-            methods.append(fb)
-        for method in methods:
-            if method != mc.resample_method:
-                log.info("even resampling: trying motion.resample_fallback=%s on the same mesh", method)
-            rs = self._resample_settings(method, int(target))
+        for method in METHODS:
+            if method != METHODS[0]:
+                log.info("even resampling: trying %s on the same mesh", method)
+            rs = ResampleSettings(method=method, target_vertices=int(target))
             v, f, col = even_resample(m.verts.detach(), m.faces, rs, attributes=m.color_logits.detach())
             kept = f.shape == m.faces.shape and torch.equal(f.to(m.faces.device), m.faces) and torch.equal(v, m.verts.detach())
             if not kept:
                 break
-        if not kept:  # else: refused (resample.max_lost), the mesh and the optimiser's state stay as they are
+        if not kept:  # else: refused (ResampleSettings.max_lost), the mesh and the optimiser's state stay as they are
             self._set_mesh(v, f, col)
         self._log({"phase": "eval", "step": self.step, "seconds": round(time.perf_counter() - self.t0, 3),
                    "what": "resample", "vertices_before": int(n0), "vertices_after": int(v.shape[0]), "kept": kept,
                    "method": None if kept else method})
         log.info("even resampling (%s): %d -> %d vertices%s", method, n0, v.shape[0],
                  " (not used: the mesh is kept)" if kept else "")
-
-    def _resample_settings(self, method: str, target: int | None = None):
-        """``motion.resample`` with the method, target count and refusal limit the motion settings give it."""
-        from s3o_warp.resample import ResampleSettings
-
-        mc, default = self.cfg.motion, ResampleSettings()
-        for name, own in (("method", "resample_method"), ("target_vertices", "resample_vertices"),
-                          ("max_lost", "resample_max_lost")):
-            if getattr(mc.resample, name) != getattr(default, name):
-                raise ConfigError(f"motion.resample.{name} is set by motion.{own}: set that instead and leave "
-                                  f"motion.resample.{name} at {getattr(default, name)!r}")
-        return mc.resample.replace(method=method, target_vertices=target, max_lost=mc.resample_max_lost)
 
     def _set_mesh(self, verts: torch.Tensor, faces: torch.Tensor, color_logits: torch.Tensor) -> None:
         """Swap the canonical mesh; the optimiser keeps every other parameter's state (and all learning rates)."""
@@ -1151,17 +1112,13 @@ class Fitter:
 
     def load_checkpoint(self, path: Path) -> None:
         st = torch.load(path, map_location=self.device, weights_only=False)
-        if st.get("version") != CHECKPOINT_VERSION:
-            raise InputError(
-                f"checkpoint {path} has version {st.get('version')}, this s3o-warp writes {CHECKPOINT_VERSION}; "
-                "start a fresh run (drop --resume or use another --out)"
-            )
+        _check_version(st, f"checkpoint {path}", "start a fresh run (drop --resume or use another --out)")
         if st.get("sequence") != self.data.name or st.get("num_frames") != self.data.num_frames:
             raise InputError(
                 f"checkpoint {path} belongs to sequence '{st.get('sequence')}' ({st.get('num_frames')} frames), "
                 f"not '{self.data.name}' ({self.data.num_frames} frames); use another --out or drop --resume"
             )
-        pp = _flat(st.get("config") or {}).get("motion.principal_point", EARLIER_DEFAULTS["motion.principal_point"])
+        pp = st["config"]["motion"]["principal_point"]
         if pp != self.cfg.motion.principal_point:
             raise InputError(f"checkpoint {path} was written with motion.principal_point={pp}, this fit has "
                              f"{self.cfg.motion.principal_point}; add --set motion.principal_point={pp} to continue it, "
@@ -1239,7 +1196,7 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
     ``sequence_dir`` is a sequence folder, a DAVIS root (with ``name``), a DAVIS sequence folder, or a
     video file / frame folder with a separate ``masks`` folder (see ``s3o_warp.video.open_sequence``).
     ``branch_from``: a finished or running fit of the same sequence whose settings differ from ``cfg`` only in
-    ``skeleton.t_o``, ``merge_quantile``, ``t_u``, ``split_end_bones``, ``split_inner_bones``, ``t_d``, ``min_bone_length``, ``motion.refine_vertices`` or ``motion.polish_*`` (:data:`BRANCH_MAY_DIFFER`: read only from the branch on); the fit starts from its ``checkpoints/branch.pt`` (the state just
+    ``skeleton.t_o``, ``merge_quantile``, ``t_u``, ``split_end_bones``, ``split_inner_bones``, ``t_d``, ``min_bone_length`` or ``motion.polish_*`` (:data:`BRANCH_MAY_DIFFER`: read only from the branch on); the fit starts from its ``checkpoints/branch.pt`` (the state just
     before the first merge) and its cached flow, so a t_o study pays for the shared part once (the rest of the run directory is this fit's own). With
     ``resume`` a checkpoint of ``out_dir`` itself comes first.
     """
@@ -1286,6 +1243,15 @@ def _flat(d: dict, prefix: str = "") -> dict:
     return out
 
 
+def _check_version(state: dict, what: str, fix: str) -> None:
+    """InputError, one line naming ``what`` and the ``fix``, unless ``state`` is a checkpoint of this format."""
+    v = state.get("version")
+    if v != CHECKPOINT_VERSION:
+        age = "an earlier" if v is None or (isinstance(v, int) and v < CHECKPOINT_VERSION) else "another"
+        raise InputError(f"{what} was written by {age} version of s3o-warp (checkpoint version {v}, this one reads "
+                         f"{CHECKPOINT_VERSION}) and must be refit: {fix}")
+
+
 def _branch_checkpoint(parent: Path, out_dir: Path, cfg: Config) -> Path:
     """The branch checkpoint of run ``parent`` for a fit with ``cfg`` into ``out_dir``; InputError when it is
     missing or the settings differ in more than :data:`BRANCH_MAY_DIFFER`."""
@@ -1296,10 +1262,10 @@ def _branch_checkpoint(parent: Path, out_dir: Path, cfg: Config) -> Path:
         raise InputError(f"--branch-from {parent}: no {ck.relative_to(parent)} there (it is written just before the "
                          "first merge of a fit with skeleton.method=s3o, skeleton.epochs >= skeleton.e1 + 3 and "
                          "output.branch_checkpoint=true); fit that run first or drop --branch-from")
-    theirs = _flat(torch.load(ck, map_location="cpu", weights_only=False)["config"])
+    st = torch.load(ck, map_location="cpu", weights_only=False)
+    _check_version(st, f"--branch-from {parent}: its {ck.relative_to(parent)}", "refit that run, then branch from it")
+    theirs = _flat(st["config"])
     ours = _flat(to_dict(cfg))
-    defaults = {**_flat(to_dict(Config())), **EARLIER_DEFAULTS}  # a setting newer than the parent's run: its default then
-    theirs = {**{k: v for k, v in defaults.items() if k not in theirs}, **theirs}
     free = set(BRANCH_MAY_DIFFER) | {"preset"}
     differ = sorted(k for k in set(theirs) | set(ours)
                     if k not in free and not k.startswith("output.") and theirs.get(k) != ours.get(k))

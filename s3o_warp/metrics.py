@@ -46,6 +46,7 @@ from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
 from s3o_warp.errors import InputError
+from s3o_warp.video import read_mask
 
 log = logging.getLogger(__name__)
 
@@ -397,30 +398,6 @@ def load_keypoints(path) -> Keypoints:
     return Keypoints(names or [f"kp{p}" for p in range(P)], frames, path)
 
 
-def read_mask(path, object_id: int | None = None) -> np.ndarray:
-    """One mask file -> bool (H, W): value > 127 (grey/RGB), or palette index (== object_id, else != 0)."""
-    from PIL import Image
-
-    path = Path(path)
-    try:
-        with Image.open(path) as im:
-            mode = im.mode
-            a = np.asarray(im)
-    except FileNotFoundError:
-        raise InputError(f"{path}: mask not found; every predicted frame needs masks/<frame>.png") from None
-    except OSError as e:
-        raise InputError(f"{path}: cannot read the mask ({e}); re-export it as a PNG") from None
-    if mode == "P":
-        return a == object_id if object_id is not None else a != 0
-    if a.ndim == 3:
-        a = a[..., :3].max(axis=-1)
-    if a.dtype == bool:
-        return a
-    if a.dtype == np.uint16:
-        return a > 32767
-    return a > (127 if np.issubdtype(a.dtype, np.integer) else 0.5)
-
-
 def load_masks(masks_dir, frame_names: list[str], image_size: tuple[int, int] | None = None,
                object_id: int | None = None) -> np.ndarray:
     """Ground-truth masks of the named frames -> bool (T, H, W), read from ``masks_dir/<stem>.png``.
@@ -437,6 +414,8 @@ def load_masks(masks_dir, frame_names: list[str], image_size: tuple[int, int] | 
         if not p.exists():
             alts = [q for q in d.glob(f"{stem}.*")]
             p = alts[0] if alts else p
+        if not p.exists():
+            raise InputError(f"{p}: mask not found; every predicted frame needs masks/<frame>.png")
         m = read_mask(p, object_id)
         if image_size is not None and m.shape != tuple(image_size):
             raise InputError(f"{p}: mask is {m.shape[1]}x{m.shape[0]} but the prediction's frames are "

@@ -57,6 +57,20 @@ FLOW_PRESETS = {
 }
 """``DataConfig.flow_preset`` names and their OpenCV DIS presets."""
 
+CROP_BACKGROUND = (0, 0, 0)
+"""RGB colour given to crop pixels that fall outside the frame (masks get 0 there)."""
+
+BLOB_GAP = 0.05
+"""``data.largest_blob``: fragments within this fraction of the largest blob's bbox diagonal belong to the object
+(thin legs break off a mask by a pixel or two)."""
+
+BORDER_WEIGHT = 0.3
+"""Silhouette-loss weight of frames where the object touches the frame border (it leaves the frame, so the mask
+shows only part of it)."""
+
+FRAME_CACHE_SIZE = 4
+"""Decoded frames (image and mask) a sequence keeps in memory; others are read from disk on demand."""
+
 __all__ = [
     "Crop",
     "Sequence",
@@ -65,6 +79,7 @@ __all__ = [
     "crop_frame",
     "crop_transform",
     "mask_bbox",
+    "read_mask",
     "largest_component",
     "map_points",
     "intrinsics_crop_to_frame",
@@ -104,22 +119,10 @@ def check_data_config(cfg: DataConfig) -> None:
         raise ConfigError(
             f"data.flow_preset must be one of {', '.join(FLOW_PRESETS)}, got {cfg.flow_preset!r}"
         )
-    fs = cfg.flow_finest_scale
-    if fs is not None and (isinstance(fs, bool) or not isinstance(fs, int) or not 0 <= fs <= 4):
-        raise ConfigError(f"data.flow_finest_scale must be an integer in [0, 4] or None (the preset's), got {fs!r}")
-    if not 1.0 <= cfg.flow_upsample <= 4.0:
-        raise ConfigError(f"data.flow_upsample must be in [1, 4] (canvas resolution factor), got {cfg.flow_upsample!r}")
-    if not cfg.flow_fb_sigma > 0:
-        raise ConfigError(f"data.flow_fb_sigma must be > 0 (crop pixels), got {cfg.flow_fb_sigma!r}")
     if not cfg.fps > 0:
         raise ConfigError(f"data.fps must be > 0 (frames per second), got {cfg.fps!r}")
     if not isinstance(cfg.mask_threshold, int) or not 0 <= cfg.mask_threshold < 255:
         raise ConfigError(f"data.mask_threshold must be an integer in [0, 254], got {cfg.mask_threshold!r}")
-    bg = tuple(cfg.crop_background)
-    if len(bg) != 3 or not all(isinstance(v, int) and 0 <= v <= 255 for v in bg):
-        raise ConfigError(f"data.crop_background must be three integers in [0, 255] (RGB), got {cfg.crop_background!r}")
-    if not isinstance(cfg.frame_cache_size, int) or cfg.frame_cache_size < 2:
-        raise ConfigError(f"data.frame_cache_size must be an integer >= 2, got {cfg.frame_cache_size!r}")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -263,7 +266,7 @@ class Crop:
     """One frame's square crop at the working resolution S = ``DataConfig.crop_size``.
 
     Attributes:
-        image: ``(S, S, 3) uint8`` RGB crop; pixels outside the frame are ``crop_background``.
+        image: ``(S, S, 3) uint8`` RGB crop; pixels outside the frame are :data:`CROP_BACKGROUND`.
         mask: ``(S, S) bool`` foreground crop; False outside the frame.
         crop_to_frame: ``(3, 3) float64``; frame pixel = crop_to_frame @ (c, r, 1) for crop pixel (c, r).
         frame_to_crop: ``(3, 3) float64`` inverse of crop_to_frame.
@@ -282,7 +285,7 @@ def crop_frame(
     mask: np.ndarray,
     crop_size: int,
     crop_scale: float,
-    background: tuple[int, int, int] = (0, 0, 0),
+    background: tuple[int, int, int] = CROP_BACKGROUND,
     bbox: tuple[int, int, int, int] | None = None,
 ) -> Crop:
     """Square crop of a frame around its mask box, resized to ``crop_size x crop_size``.
@@ -318,7 +321,7 @@ def _clean_mask(mask: np.ndarray, cfg) -> np.ndarray:
     """The mask as the fit uses it: with ``data.largest_blob``, the largest blob and the fragments near it.
 
     Thin parts (a leg, a tail tip) often break off a few pixels from the body in a mask; they belong to
-    the object and are kept when they lie within ``data.blob_gap`` x the largest blob's bbox diagonal of
+    the object and are kept when they lie within :data:`BLOB_GAP` x the largest blob's bbox diagonal of
     it. Blobs farther away (another object, noise) are dropped.
     """
     if not getattr(cfg, "largest_blob", False) or not mask.any():
@@ -328,7 +331,7 @@ def _clean_mask(mask: np.ndarray, cfg) -> np.ndarray:
         return mask
     best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
     w, h = stats[best, cv2.CC_STAT_WIDTH], stats[best, cv2.CC_STAT_HEIGHT]
-    r = max(1, int(round(getattr(cfg, "blob_gap", 0.05) * float(np.hypot(w, h)))))
+    r = max(1, int(round(BLOB_GAP * float(np.hypot(w, h)))))
     near = cv2.dilate((labels == best).astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
     keep = np.unique(labels[(near > 0) & (labels > 0)])
     return np.isin(labels, keep)
@@ -380,8 +383,9 @@ def _read_rgb(path: Path) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-def _read_mask(path: Path, object_id: int | None, threshold: int) -> np.ndarray:
-    """Boolean (H, W) foreground of one mask file; see the module docstring for the rules."""
+def read_mask(path: Path, object_id: int | None = None, threshold: int = DataConfig.mask_threshold) -> np.ndarray:
+    """Boolean (H, W) foreground of one mask file; see the module docstring for the rules (``object_id`` and
+    ``threshold``: ``DataConfig.object_id`` and ``mask_threshold``)."""
     try:
         with Image.open(path) as im:
             im.load()
@@ -575,7 +579,7 @@ class Sequence:
         val = make()
         val.setflags(write=False)
         self._lru[key] = val
-        while len(self._lru) > 2 * self.cfg.frame_cache_size:  # images and masks
+        while len(self._lru) > 2 * FRAME_CACHE_SIZE:  # images and masks
             self._lru.popitem(last=False)
         return val
 
@@ -603,7 +607,7 @@ class Sequence:
         """Frame k's foreground as ``(H, W) bool`` (read-only array; decoded on demand)."""
         k = self._index(k)
         return self._cached(
-            ("mask", k), lambda: _clean_mask(_read_mask(self.mask_files[k], self.cfg.object_id, self.cfg.mask_threshold), self.cfg)
+            ("mask", k), lambda: _clean_mask(read_mask(self.mask_files[k], self.cfg.object_id, self.cfg.mask_threshold), self.cfg)
         )
 
     def frame_digest(self, k: int) -> str:
@@ -628,7 +632,6 @@ class Sequence:
             self.mask(k),
             self.cfg.crop_size,
             self.cfg.crop_scale,
-            tuple(self.cfg.crop_background),
             bbox=tuple(int(v) for v in self.bboxes[k]),
         )
 
@@ -785,7 +788,7 @@ def open_sequence(
     digests: list[str] = []
     H, W = size
     for k, mf in enumerate(tqdm(mask_files, desc=f"{seq_name}: masks", unit="mask", leave=False, disable=None)):
-        raw = _read_mask(mf, cfg.object_id, cfg.mask_threshold)
+        raw = read_mask(mf, cfg.object_id, cfg.mask_threshold)
         m = _clean_mask(raw, cfg)
         if m is not raw and (m != raw).any():
             multi_blob.append(k)
@@ -812,12 +815,13 @@ def open_sequence(
     if multi_blob:
         log.warning(
             "%s: %d mask(s) have disconnected blobs away from the object (first: %s); the largest blob and the "
-            "fragments near it are used (data.blob_gap; data.largest_blob=false keeps all)", seq_name, len(multi_blob), mask_files[multi_blob[0]]
+            "fragments near it are used (data.largest_blob=false keeps all)", seq_name, len(multi_blob), mask_files[multi_blob[0]]
         )
     if touches.any():
         log.warning(
             "%s: the object touches the frame border in %d frame(s) (first: %s); those frames are "
-            "down-weighted (data.border_weight)", seq_name, int(touches.sum()), mask_files[int(np.argmax(touches))]
+            "down-weighted (x%g in the silhouette loss)", seq_name, int(touches.sum()),
+            mask_files[int(np.argmax(touches))], BORDER_WEIGHT,
         )
     keypoints = extras / "keypoints.json" if extras is not None and (extras / "keypoints.json").is_file() else None
     gt = extras / "ground_truth" if extras is not None and (extras / "ground_truth").is_dir() else None

@@ -3,11 +3,9 @@
 What is computed, for each pair of frames (t, t+1) with crops A_t, A_{t+1} (``crop_to_frame``):
 
 1. A *flow canvas* covering both crop squares (their union, clipped to the frame) is resampled from
-   both full frames at a common scale g = max(1, min(a_t, a_{t+1})) / u frame pixels per canvas pixel
-   (a = crop side / crop_size, u = ``DataConfig.flow_upsample``), so at u = 1 the canvas is never finer
-   than the frame nor coarser than either crop, and u > 1 makes it u times finer (thin parts a few
-   pixels wide then span more than DIS's patches); DIS runs on the two grey canvases, forward
-   (t -> t+1) and backward.
+   both full frames at a common scale g = max(1, min(a_t, a_{t+1})) frame pixels per canvas pixel
+   (a = crop side / crop_size), so the canvas is never finer than the frame nor coarser than either
+   crop; DIS runs on the two grey canvases, forward (t -> t+1) and backward.
 2. The canvas flows are expressed in crop pixels. Concretely, ``flow_fwd[r, c] = (dx, dy)`` means
    the scene point at crop-t pixel (c, r) is seen at crop-(t+1) pixel (c + dx, r + dy), i.e.
    ``f(p) = A_{t+1}^-1 (x + F(x)) - p`` with x = A_t p and F the frame flow. Each frame keeps its
@@ -15,7 +13,7 @@ What is computed, for each pair of frames (t, t+1) with crops A_t, A_{t+1} (``cr
    renderer gives when it projects vertices with each frame's own crop intrinsics.
    ``flow_bwd`` is the same from crop t+1 to crop t.
 3. Confidence ``conf_fwd(p) = exp(-|f(p) + b(p + f(p))|^2 / (2 sigma^2))`` (sigma =
-   ``DataConfig.flow_fb_sigma`` in crop-t pixels), evaluated exactly on the canvas (the error is the
+   :data:`FLOW_FB_SIGMA` in crop-t pixels), evaluated exactly on the canvas (the error is the
    canvas round-trip error scaled to crop-t pixels), and 0 where p or p + f(p) falls outside the
    frame. ``conf_bwd`` likewise on crop t+1.
 
@@ -48,6 +46,14 @@ log = logging.getLogger(__name__)
 
 FLOW_FORMAT_VERSION = 1
 """Bumped whenever what is stored in a flow cache file changes (old files are then ignored)."""
+
+FLOW_FINEST_SCALE = 0
+"""DIS's finest pyramid level: 0 = the flow canvas's full resolution (the medium preset's own is 1, half; fast and
+ultrafast stop at 2, a quarter). At the preset's level the synthetic renders' flow is 0.87-0.90 of the true motion,
+at 0 0.96-0.97 (``scripts/bench_flow.py``)."""
+
+FLOW_FB_SIGMA = 1.0
+"""Forward-backward consistency: confidence = exp(-|f + b(x + f)|^2 / (2 sigma^2)), sigma in crop pixels."""
 
 _CHANNELS = 6
 _MIN_CANVAS = 32
@@ -117,8 +123,8 @@ class FlowCache:
 
 
 def make_dis(preset: str, finest_scale: int | None = None) -> cv2.DISOpticalFlow:
-    """An OpenCV DIS optical-flow object for ``DataConfig.flow_preset`` and ``flow_finest_scale`` (None: the
-    preset's finest pyramid level)."""
+    """An OpenCV DIS optical-flow object for ``DataConfig.flow_preset`` and a finest pyramid level (None: the
+    preset's; the fit uses :data:`FLOW_FINEST_SCALE`)."""
     if preset not in FLOW_PRESETS:
         raise ConfigError(f"data.flow_preset must be one of {', '.join(FLOW_PRESETS)}, got {preset!r}")
     dis = cv2.DISOpticalFlow_create(FLOW_PRESETS[preset])
@@ -128,11 +134,10 @@ def make_dis(preset: str, finest_scale: int | None = None) -> cv2.DISOpticalFlow
 
 
 def flow_canvas(
-    crop_to_frame_a: np.ndarray, crop_to_frame_b: np.ndarray, frame_size: tuple[int, int], crop_size: int,
-    upsample: float = 1.0,
+    crop_to_frame_a: np.ndarray, crop_to_frame_b: np.ndarray, frame_size: tuple[int, int], crop_size: int
 ) -> tuple[np.ndarray, tuple[int, int]]:
-    """The common region on which the flow of a pair is computed, ``upsample`` times finer than the finer of
-    the frame and the coarser crop (see the module docstring).
+    """The common region on which the flow of a pair is computed, at the finer of the frame and the coarser crop
+    (see the module docstring).
 
     Returns:
         ``canvas_to_frame`` (3, 3) float64 (scale g, translation) and the canvas ``(height, width)``.
@@ -147,7 +152,7 @@ def flow_canvas(
     top = max(min(b[1] for b in boxes), -0.5)
     right = min(max(b[2] for b in boxes), W - 0.5)
     bottom = min(max(b[3] for b in boxes), H - 0.5)
-    g = max(1.0, min(crop_to_frame_a[0, 0], crop_to_frame_b[0, 0])) / upsample
+    g = max(1.0, min(crop_to_frame_a[0, 0], crop_to_frame_b[0, 0]))
     wc = max(math.ceil((right - left) / g - 1e-9), _MIN_CANVAS)
     hc = max(math.ceil((bottom - top) / g - 1e-9), _MIN_CANVAS)
     canvas_to_frame = np.array([[g, 0.0, left + 0.5 * g], [0.0, g, top + 0.5 * g], [0.0, 0.0, 1.0]])
@@ -201,7 +206,6 @@ def pair_flow(
     crop_size: int,
     sigma: float,
     dis: cv2.DISOpticalFlow,
-    upsample: float = 1.0,
 ) -> np.ndarray:
     """Forward/backward crop flow and confidences of one frame pair (no caching).
 
@@ -211,13 +215,12 @@ def pair_flow(
         crop_size: S.
         sigma: forward-backward sigma in crop pixels.
         dis: from :func:`make_dis`.
-        upsample: canvas resolution factor (``DataConfig.flow_upsample``, :func:`flow_canvas`).
 
     Returns:
         ``(S, S, 6) float32``: fwd dx, fwd dy, bwd dx, bwd dy, conf_fwd, conf_bwd (see :class:`FlowPair`).
     """
     size = image_a.shape[:2]
-    g2f, (hc, wc) = flow_canvas(crop_to_frame_a, crop_to_frame_b, size, crop_size, upsample)
+    g2f, (hc, wc) = flow_canvas(crop_to_frame_a, crop_to_frame_b, size, crop_size)
     ca = warp_similarity(cv2.cvtColor(image_a, cv2.COLOR_RGB2GRAY), g2f, (hc, wc), 0)
     cb = warp_similarity(cv2.cvtColor(image_b, cv2.COLOR_RGB2GRAY), g2f, (hc, wc), 0)
     fwd = dis.calc(ca, cb, None)
@@ -239,12 +242,9 @@ def pair_key(seq: Sequence, t: int, cfg: DataConfig) -> str:
         "crop_size": seq.cfg.crop_size,
         "crop_scale": float(seq.cfg.crop_scale),
         "flow_preset": cfg.flow_preset,
-        "flow_fb_sigma": float(cfg.flow_fb_sigma),
+        "flow_fb_sigma": float(FLOW_FB_SIGMA),
+        "flow_finest_scale": int(FLOW_FINEST_SCALE),
     }
-    if cfg.flow_finest_scale is not None:  # absent when unset, so caches made before the setting stay valid
-        payload["flow_finest_scale"] = int(cfg.flow_finest_scale)
-    if cfg.flow_upsample != 1.0:
-        payload["flow_upsample"] = float(cfg.flow_upsample)
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
 
 
@@ -277,7 +277,7 @@ def compute_flow(seq: Sequence, cache_dir: str | Path, cfg: DataConfig | None = 
     Args:
         seq: from :func:`s3o_warp.video.open_sequence`; its crops define the crop coordinates.
         cache_dir: e.g. ``<run>/cache``.
-        cfg: flow settings (``flow_preset``, ``flow_finest_scale``, ``flow_upsample``, ``flow_fb_sigma``); defaults
+        cfg: flow settings (``flow_preset``); defaults
             to ``seq.cfg``. Its crop settings must equal the sequence's.
 
     Returns:
@@ -299,9 +299,9 @@ def compute_flow(seq: Sequence, cache_dir: str | Path, cfg: DataConfig | None = 
     c2f = np.stack([crop_transform(tuple(b), S, cfg.crop_scale) for b in seq.bboxes])
     files = [cache_dir / f"flow_{pair_key(seq, t, cfg)[:40]}.npy" for t in range(seq.num_frames - 1)]
     todo = [t for t, f in enumerate(files) if not (f.is_file() and _is_valid_file(f, S))]
-    dis = make_dis(cfg.flow_preset, cfg.flow_finest_scale) if todo else None
+    dis = make_dis(cfg.flow_preset, FLOW_FINEST_SCALE) if todo else None
     for t in tqdm(todo, desc=f"{seq.name}: optical flow", unit="pair", leave=False, disable=None):
-        arr = pair_flow(seq.image(t), seq.image(t + 1), c2f[t], c2f[t + 1], S, cfg.flow_fb_sigma, dis, cfg.flow_upsample)
+        arr = pair_flow(seq.image(t), seq.image(t + 1), c2f[t], c2f[t + 1], S, FLOW_FB_SIGMA, dis)
         cache_dir.mkdir(parents=True, exist_ok=True)
         _save_atomic(files[t], arr)
     hits = len(files) - len(todo)

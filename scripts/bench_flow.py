@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Optical-flow benchmark: how much of the true motion the fit's crop flow sees, on synthetic sequences.
 
-    python scripts/bench_flow.py --cases fox120 horse [quadruped] [--finest-scales preset 0] [--upsamples 1 2]
+    python scripts/bench_flow.py --cases fox120 horse [quadruped] [--finest-scales preset 0]
                                  [--presets medium] [--crop-size S] [--out-dir DIR]
 
 The true flow comes from the sequence's ``ground_truth/``: each foreground pixel of frame t is a point on a
@@ -56,13 +56,13 @@ def true_frame_flow(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, size: t
     return out
 
 
-def measure(seq_dir: Path, preset: str, finest_scale: int | None, upsample: float, crop_size: int, truth) -> dict:
+def measure(seq_dir: Path, preset: str, finest_scale: int | None, crop_size: int, truth) -> dict:
     """Ratio and end-point error of the crop flow against ``truth`` (from :func:`true_frame_flow`)."""
     from s3o_warp.config import DataConfig
     from s3o_warp.video import map_points, open_sequence
-    from s3o_warp.video_flow import make_dis, pair_flow
+    from s3o_warp.video_flow import FLOW_FB_SIGMA, make_dis, pair_flow
 
-    cfg = DataConfig(crop_size=crop_size, flow_preset=preset, flow_finest_scale=finest_scale, flow_upsample=upsample)
+    cfg = DataConfig(crop_size=crop_size, flow_preset=preset)
     seq = open_sequence(seq_dir, cfg=cfg)
     dis = make_dis(preset, finest_scale)
     c2f = seq.crop_to_frame
@@ -71,7 +71,7 @@ def measure(seq_dir: Path, preset: str, finest_scale: int | None, upsample: floa
     p = np.stack([c, r], -1)
     ratios, weighted, epes = [], [], []
     for t, (ftrue, fg) in enumerate(truth):
-        arr = pair_flow(seq.image(t), seq.image(t + 1), c2f[t], c2f[t + 1], S, cfg.flow_fb_sigma, dis, upsample)
+        arr = pair_flow(seq.image(t), seq.image(t + 1), c2f[t], c2f[t + 1], S, FLOW_FB_SIGMA, dis)
         x = map_points(p, c2f[t])  # crop-t pixels in frame t
         x2 = map_points(p + arr[..., 0:2], c2f[t + 1])  # where the flow sends them, frame t+1
         xi, yi = np.round(x[..., 0]).astype(int), np.round(x[..., 1]).astype(int)
@@ -97,8 +97,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", nargs="+", default=["fox120", "horse"], help="synthetic cases of bench_fit.py")
     ap.add_argument("--presets", nargs="+", default=["medium"], help="DIS presets (data.flow_preset)")
     ap.add_argument("--finest-scales", nargs="+", default=["preset", "0"],
-                    help="data.flow_finest_scale values; 'preset' = None (the preset's own)")
-    ap.add_argument("--upsamples", nargs="+", type=float, default=[1.0, 2.0], help="data.flow_upsample values")
+                    help="DIS finest pyramid levels; 'preset' = the preset's own (the fit's: FLOW_FINEST_SCALE)")
     ap.add_argument("--crop-size", type=int, default=None, help="data.crop_size (default: the default preset's)")
     ap.add_argument("--out-dir", default=str(REPO / "runs" / "bench"), help="where sequences are rendered (bench_fit.py's)")
     args = ap.parse_args(argv)
@@ -125,12 +124,11 @@ def main(argv=None) -> int:
         truth = true_frame_flow(gt.verts, gt.faces, gt.K, tuple(int(v) for v in gt.image_size))
         for preset in args.presets:
             for fs in args.finest_scales:
-                for up in args.upsamples:
-                    finest = None if fs == "preset" else int(fs)
-                    res = {"case": case, "preset": preset, "finest_scale": finest, "upsample": up, "crop_size": args.crop_size,
-                           **measure(seq, preset, finest, up, args.crop_size, truth)}
-                    print(json.dumps(res), flush=True)
-                    doc["results"].append(res)
+                finest = None if fs == "preset" else int(fs)
+                res = {"case": case, "preset": preset, "finest_scale": finest, "crop_size": args.crop_size,
+                       **measure(seq, preset, finest, args.crop_size, truth)}
+                print(json.dumps(res), flush=True)
+                doc["results"].append(res)
     write_json(doc, dest)
     print(f"wrote {dest}")
     return 0

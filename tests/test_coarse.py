@@ -175,8 +175,6 @@ def test_skeleton_input_errors():
         skeleton_2d(np.ones((2, 10, 10), bool))
     with pytest.raises(ConfigError, match="prune_factor"):
         skeleton_2d(quadruped(), prune_factor=-1)
-    with pytest.raises(ConfigError, match="not a setting"):
-        CoarseSettings().replace(prune=1.0)
     with pytest.raises(ConfigError, match="skeleton_method"):
         CoarseSettings(skeleton_method="thin")
 

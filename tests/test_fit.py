@@ -5,15 +5,18 @@ from __future__ import annotations
 import copy
 import json
 import logging
+from unittest import mock
 
 import numpy as np
 import pytest
 import torch
 from conftest import smoke_config
 
+from s3o_warp import video_flow
 from s3o_warp.config import make_config
 from s3o_warp.errors import ConfigError, InputError
 from s3o_warp.fit import (
+    CHECKPOINT_VERSION,
     FitInterrupted,
     Fitter,
     coarse_model,
@@ -69,7 +72,7 @@ def test_small_fit_raises_iou_and_writes_the_run_directory(tiny_sequence, tmp_pa
 
 def test_fit_of_a_small_clip_learns_the_quadrupeds_skeleton(small_sequence, tmp_path):
     """Four legs, a tail, a neck and a head (see :func:`_check_skeleton_shape` for the tolerances)."""
-    cfg = _cfg(**{"data.crop_size": 96, "coarse.init.target_vertices": 1200, "coarse.steps": 30,
+    cfg = _cfg(**{"data.crop_size": 96, "coarse.target_vertices": 1200, "coarse.steps": 30,
                   "motion.warmup_steps": 40, "motion.steps": 60})
     run = tmp_path / "run"
     metrics = fit(small_sequence, run, cfg, torch.device("cpu"))
@@ -308,16 +311,13 @@ def test_a_fit_branched_at_another_t_o_ends_where_a_fresh_fit_at_it_ends(tiny_se
     secs = [r["seconds"] for r in rows]
     assert secs == sorted(secs)
     assert json.loads((c / "skeleton.json").read_text())["bones"] == json.loads((b / "skeleton.json").read_text())["bones"]
-    # merge_quantile, joint creation's t_d, the short-bone limit, the refinement's mesh and the polish are read only
-    # after the branch too
+    # merge_quantile, joint creation's t_d, the short-bone limit and the polish are read only after the branch too
     other = {**over, "skeleton.t_o": 0.5, "skeleton.merge_quantile": 0.5, "skeleton.t_d": 0.05,
-             "skeleton.min_bone_length": 0.03, "motion.polish_steps": 3, "motion.refine_vertices": 2000}
+             "skeleton.min_bone_length": 0.03, "motion.polish_steps": 3}
     fit(tiny_sequence, tmp_path / "d", _cfg(**other), torch.device("cpu"))
     fit(tiny_sequence, tmp_path / "e", _cfg(**other), torch.device("cpu"), branch_from=a)
     assert [json.loads(line)["phase"] for line in open(tmp_path / "e" / "log.jsonl")].count("polish") == 3
     pd, pe = _final_params(tmp_path / "d"), _final_params(tmp_path / "e")
-    sizes = [r["vertices_after"] for r in map(json.loads, open(tmp_path / "d" / "log.jsonl")) if r.get("what") == "resample"]
-    assert len(sizes) == 4 and max(sizes[:2]) < 0.7 * min(sizes[2:]), sizes  # finer from the first merge's on
     for k in pd:
         torch.testing.assert_close(pe[k], pd[k], rtol=0, atol=1e-6, msg=f"branched fit with a polish differs in {k}")
 
@@ -326,31 +326,26 @@ def test_a_branch_refuses_other_settings_and_a_run_without_its_checkpoint(tiny_s
     over = {"coarse.steps": 2, "motion.warmup_steps": 2, "motion.steps": 8, "skeleton.epochs": 4, "skeleton.e1": 1}
     a = tmp_path / "a"
     fit(tiny_sequence, a, _cfg(**over), torch.device("cpu"))
-    with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o, skeleton.merge_quantile, skeleton.t_u, skeleton.split_end_bones, skeleton.t_d, skeleton.min_bone_length, skeleton.split_inner_bones, motion.refine_vertices, motion.polish_steps, motion.polish_lr_factor may differ"):
+    with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o, skeleton.merge_quantile, skeleton.t_u, skeleton.split_end_bones, skeleton.t_d, skeleton.min_bone_length, skeleton.split_inner_bones, motion.polish_steps, motion.polish_lr_factor may differ"):
         fit(tiny_sequence, tmp_path / "b", _cfg(**over, **{"motion.lr_bones": 0.123}), torch.device("cpu"), branch_from=a)
     assert not (tmp_path / "b").exists()  # refused before any work
-    # a run from before a setting existed ran with its default: that setting does not count as a difference
+    # a setting the parent's run lacks is a difference, not read at today's default
     from s3o_warp.fit import _branch_checkpoint
 
     ck = a / "checkpoints" / "branch.pt"
     state = torch.load(ck, map_location="cpu", weights_only=False)
-    del state["config"]["motion"]["resample"]
-    torch.save(state, ck)
     assert _branch_checkpoint(a, tmp_path / "e", _cfg(**over)) == ck
-    with pytest.raises(InputError, match=r"differ in motion.resample.trials \(4 there, 7 here\)"):
-        _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.resample.trials": 7}))
-    # a setting whose default changed: a run without it had the earlier default, not today's
-    del state["config"]["motion"]["principal_point"]
+    del state["config"]["motion"]["resample_epochs"]
     torch.save(state, ck)
-    assert _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.principal_point": "frame"})) == ck
-    with pytest.raises(InputError, match=r"differ in motion.principal_point \('frame' there, 'shared' here\)"):
-        _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.principal_point": "shared"}))
-    del state["config"]["skeleton"]["joint_samples"]  # 1 until session 34, 4 now
+    with pytest.raises(InputError, match=r"differ in motion.resample_epochs \(None there, 1 here\)"):
+        _branch_checkpoint(a, tmp_path / "e", _cfg(**over))
+    # a parent written by an earlier version of the checkpoints is refused in one line: refit it
+    state["version"] = CHECKPOINT_VERSION - 1
     torch.save(state, ck)
-    assert _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.principal_point": "frame",
-                                                               "skeleton.joint_samples": 1})) == ck
-    with pytest.raises(InputError, match=r"differ in skeleton.joint_samples \(1 there, 4 here\)"):
-        _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.principal_point": "frame"}))
+    with pytest.raises(InputError, match=r"^--branch-from .*checkpoints/branch.pt was written by an earlier version "
+                                         r"of s3o-warp .* and must be refit: refit that run, then branch from it$"):
+        fit(tiny_sequence, tmp_path / "f", _cfg(**over), torch.device("cpu"), branch_from=a)
+    assert not (tmp_path / "f").exists()
     with pytest.raises(InputError, match="that is the run directory itself"):
         fit(tiny_sequence, a, _cfg(**over), torch.device("cpu"), branch_from=a)
     short = tmp_path / "short"  # 3 epochs, e1 1: the last M-step is the upsampling, t_o is never read
@@ -380,7 +375,11 @@ def test_resume_refuses_a_checkpoint_of_another_sequence(tiny_sequence, tmp_path
     st = torch.load(ck, weights_only=False)
     st["version"] = 999
     torch.save(st, ck)
-    with pytest.raises(InputError, match="version 999"):
+    with pytest.raises(InputError, match="another version of s3o-warp \\(checkpoint version 999"):
+        fit(tiny_sequence, run, cfg, torch.device("cpu"), resume=True)
+    st["version"] = CHECKPOINT_VERSION - 1
+    torch.save(st, ck)
+    with pytest.raises(InputError, match="written by an earlier version of s3o-warp .* must be refit"):
         fit(tiny_sequence, run, cfg, torch.device("cpu"), resume=True)
 
 
@@ -583,19 +582,13 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
     ("skeleton.merge_quantile=1", "merge_quantile"),
     ("motion.sweep_stride=-1", "sweep_stride"),
     ("skeleton.min_frames_fraction=1.5", "min_frames_fraction"),
-    ("motion.resample_method=manifold", "motion.resample_method"),
-    ("motion.resample_max_lost=1.5", "motion.resample_max_lost"),
-    ("motion.resample_fallback=manifold", "motion.resample_fallback"),
-    ("motion.resample.refine_step=2", "resample.refine_step"),
-    ("motion.resample.method=isotropic", "set by motion.resample_method"),
-    ("motion.resample.max_lost=0.5", "set by motion.resample_max_lost"),
     ("motion.polish_steps=-1", "motion.polish_steps"),
     ("motion.polish_lr_factor=0", "motion.polish_lr_factor"),
     ("skeleton.motion_frame=image", "motion_frame"),
     ("skeleton.still_flow=0", "still_flow"),
     ("skeleton.min_section_vertices=0", "min_section_vertices"),
     ("skeleton.joint_samples=0", "joint_samples"),
-    ("motion.refine_vertices=-1", "motion.refine_vertices"),
+    ("motion.resample_vertices=-1", "motion.resample_vertices"),
     ("motion.principal_point=centre", "motion.principal_point"),
 ])
 def test_fitter_refuses_a_bad_setting_before_any_work(tiny_sequence, tmp_path, bad, names):
@@ -604,18 +597,6 @@ def test_fitter_refuses_a_bad_setting_before_any_work(tiny_sequence, tmp_path, b
     coarse = coarse_model(data, cfg)
     with pytest.raises(ConfigError, match=names):
         Fitter(data, coarse, make_config("smoke", overrides=[bad]), tmp_path, torch.device("cpu"))
-
-
-def test_isotropic_resampling_without_pymeshlab_is_refused_before_the_fit(tiny_sequence, tmp_path, monkeypatch):
-    import importlib.util
-
-    cfg = _cfg(**{"coarse.steps": 2})
-    data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
-    real_find_spec = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "pymeshlab" else real_find_spec(name, *a))
-    with pytest.raises(ConfigError, match="needs pymeshlab"):
-        Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["motion.resample_method=isotropic"]),
-               tmp_path, torch.device("cpu"))
 
 
 def test_a_shared_principal_point_starts_where_the_per_frame_ones_do_and_stays_one(tiny_sequence, tmp_path):
@@ -721,9 +702,10 @@ def _joint_fitter(tiny_sequence, tmp_path):
     cases (a far leg never seen moving, the shortest inner bone) were picked on this state, made with the medium
     preset's own finest flow level (1), which is pinned so the state stays, and with the paper's joints over the
     vertices and no inner-bone split (the defaults then; the tests of those two options turn them on)."""
-    cfg = _cfg(**{"coarse.steps": 5, "motion.warmup_steps": 5, "data.flow_finest_scale": 1,
+    cfg = _cfg(**{"coarse.steps": 5, "motion.warmup_steps": 5,
                   "skeleton.joint_samples": 1, "skeleton.split_inner_bones": False})
-    data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
+    with mock.patch.object(video_flow, "FLOW_FINEST_SCALE", 1):
+        data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
     f.phase = "joint"
     f.opt = f._make_optimizer()
@@ -1072,13 +1054,12 @@ def test_m_step_decides_mirror_partners_by_the_better_seen_one(tiny_sequence, tm
 
 
 @pytest.mark.parametrize("method", ["marching", "isotropic"])
-def test_even_resampling_in_the_fit_keeps_the_render_and_the_loss(tiny_sequence, tmp_path, method):
+def test_even_resampling_in_the_fit_keeps_the_render_and_the_loss(tiny_sequence, tmp_path, method, monkeypatch):
+    import s3o_warp.resample as rs
     from s3o_warp.kernels.raster import rasterize
 
-    if method == "isotropic":
-        pytest.importorskip("pymeshlab")
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
-    f.cfg.motion.resample_method = method
+    monkeypatch.setattr(rs, "METHODS", (method,))  # this method alone
     m, S = f.model, data.crop_size
 
     def state():
@@ -1108,7 +1089,7 @@ def test_even_resampling_in_the_fit_keeps_the_render_and_the_loss(tiny_sequence,
 
 
 def test_a_refused_resampling_keeps_the_mesh_and_its_optimiser_state(tiny_sequence, tmp_path, monkeypatch):
-    """When even_resample gives the mesh back (it would lose more than motion.resample_max_lost), the fit keeps its
+    """When even_resample gives the mesh back (it would lose more than ResampleSettings.max_lost), the fit keeps its
     vertex parameter, the vertices' Adam state and the Laplacian reference, and logs the resampling as kept."""
     import s3o_warp.resample as rs
 
@@ -1121,34 +1102,25 @@ def test_a_refused_resampling_keeps_the_mesh_and_its_optimiser_state(tiny_sequen
     seen = []
 
     def refuse(verts, faces, settings=None, attributes=None):
-        seen.append((settings.method, settings.max_lost, settings.max_vertices_factor, settings.target_vertices))
+        seen.append((settings.method, settings.target_vertices))
         return verts.detach().clone(), faces.detach().clone(), attributes.detach().clone()
 
     monkeypatch.setattr(rs, "even_resample", refuse)
-    monkeypatch.setattr(f, "_has_meshlab", True)
-    f.cfg.motion.resample_max_lost = 0.02
-    f.cfg.motion.resample.max_vertices_factor = 1.5
     verts, lap_ref, state = m.verts, f.lap_ref, {k: v.clone() for k, v in f.opt.state[m.verts].items()}
     f.resample_mesh()
-    # the fit's settings reach the resampling; refused by marching, the fallback is tried on the same mesh
+    # the target reaches the resampling; refused by marching, isotropic is tried on the same mesh
     n = len(f.coarse.init.verts)
-    assert seen == [("marching", 0.02, 1.5, n), ("isotropic", 0.02, 1.5, n)]
+    assert seen == [("marching", n), ("isotropic", n)]
     assert m.verts is verts and f.lap_ref is lap_ref
     for k, v in state.items():
         torch.testing.assert_close(f.opt.state[m.verts][k], v)
     assert f.history[-1]["what"] == "resample" and f.history[-1]["kept"] is True and f.history[-1]["method"] is None
-    seen.clear()
-    f.cfg.motion.resample_fallback = "none"
-    f.resample_mesh()
-    assert seen == [("marching", 0.02, 1.5, n)]
 
 
 def test_a_resampling_refused_by_marching_is_done_by_the_fallback(tiny_sequence, tmp_path, monkeypatch):
-    """motion.resample_fallback: when marching would lose too much, the other method's result is used (and
-    logged); without pymeshlab the isotropic fallback is skipped, not an error."""
+    """When marching would lose too much, isotropic remeshing's result is used (and logged)."""
     import s3o_warp.resample as rs
 
-    pytest.importorskip("pymeshlab")
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     m = f.model
     real = rs.even_resample
@@ -1166,11 +1138,6 @@ def test_a_resampling_refused_by_marching_is_done_by_the_fallback(tiny_sequence,
     assert seen == ["marching", "isotropic"]
     assert m.verts is not verts and f.edges.max() < m.verts.shape[0]
     assert f.history[-1]["kept"] is False and f.history[-1]["method"] == "isotropic"
-    seen.clear()
-    monkeypatch.setattr(f, "_has_meshlab", False)
-    verts = m.verts
-    f.resample_mesh()
-    assert seen == ["marching"] and m.verts is verts and f.history[-1]["kept"] is True
 
 
 def test_cli_fits_a_video_file_with_a_mask_folder(tiny_sequence, tmp_path):

@@ -23,6 +23,7 @@ import torch
 from s3o_warp import metrics as M
 from s3o_warp.badja import BADJA_ANNOTATED, BADJA_JOINT_NAMES, badja_to_keypoints, write_keypoints
 from s3o_warp.errors import InputError
+from s3o_warp.video import read_mask
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -621,7 +622,7 @@ def test_badja_keypoints_fall_inside_davis_masks(shared_data, animal, tmp_path):
     kp = M.load_keypoints(out)
     dist = []
     for stem, rows in kp.frames.items():
-        m = M.read_mask(masks / f"{stem}.png")
+        m = read_mask(masks / f"{stem}.png")
         assert m.shape == (480, 854)
         dt = distance_transform_edt(~m)
         for x, y, v in rows:

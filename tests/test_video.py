@@ -11,6 +11,7 @@ import pytest
 import torch
 from PIL import Image
 
+from s3o_warp import video, video_flow
 from s3o_warp.config import DataConfig
 from s3o_warp.errors import ConfigError, InputError
 from s3o_warp.video import (
@@ -23,7 +24,7 @@ from s3o_warp.video import (
     mask_bbox,
     open_sequence,
 )
-from s3o_warp.video_flow import compute_flow, flow_canvas, make_dis, pair_flow
+from s3o_warp.video_flow import compute_flow, make_dis, pair_flow
 
 H, W = 60, 80
 
@@ -76,11 +77,12 @@ def open_and_flow(path, tmp_path: Path, **kw):
 # ------------------------------------------------------------------ layouts
 
 
-def test_images_masks_layout_and_lazy_reads(tmp_path):
+def test_images_masks_layout_and_lazy_reads(tmp_path, monkeypatch):
+    monkeypatch.setattr(video, "FRAME_CACHE_SIZE", 2)
     root = write_seq(tmp_path / "walk", n=4)
     (root / "keypoints.json").write_text("{}")
     (root / "ground_truth").mkdir()
-    seq = open_sequence(root, cfg=DataConfig(crop_size=32, frame_cache_size=2))
+    seq = open_sequence(root, cfg=DataConfig(crop_size=32))
     assert seq.name == "walk" and seq.num_frames == 4 and len(seq) == 4
     assert seq.frame_names == ["00000", "00001", "00002", "00003"]
     assert seq.size == (H, W) and seq.fps == 30.0
@@ -173,7 +175,7 @@ def test_video_layout_and_seeking(tmp_path, fourcc, ext):
         cv2.imwrite(str(tmp_path / "seq" / "masks" / f"{k:04d}.png"), rect_mask(10 + k, 10, 40 + k, 40))
     writer.release()
     (tmp_path / "seq" / "keypoints.json").write_text("{}")
-    seq = open_sequence(video, masks=tmp_path / "seq" / "masks", cfg=DataConfig(frame_cache_size=2))
+    seq = open_sequence(video, masks=tmp_path / "seq" / "masks", cfg=DataConfig())
     assert seq.name == "clip" and seq.num_frames == n and seq.size == (H, W) and seq.fps == 12.0
     assert seq.frame_names[0] == "000000" and seq.keypoints_file == tmp_path / "seq" / "keypoints.json"
     in_order = [seq.image(k).astype(int) for k in range(n)]
@@ -334,13 +336,13 @@ def translated_pair(d=(2.6, -1.4), h=120, w=160):
     return img0, img1, m0, m1
 
 
-@pytest.mark.parametrize("crop_size,upsample", [(64, 1.0), (96, 1.0), (64, 2.0)])
-def test_flow_on_translated_texture(crop_size, upsample):
+@pytest.mark.parametrize("crop_size", [64, 96])
+def test_flow_on_translated_texture(crop_size):
     d = np.array([2.6, -1.4])
     img0, img1, m0, m1 = translated_pair(tuple(d))
     c0 = crop_frame(img0, m0, crop_size, 1.3)
     c1 = crop_frame(img1, m1, crop_size, 1.3)
-    arr = pair_flow(img0, img1, c0.crop_to_frame, c1.crop_to_frame, crop_size, 1.0, make_dis("medium"), upsample)
+    arr = pair_flow(img0, img1, c0.crop_to_frame, c1.crop_to_frame, crop_size, 1.0, make_dis("medium"))
     fwd, bwd, cf, cb = arr[..., 0:2], arr[..., 2:4], arr[..., 4], arr[..., 5]
     r, c = np.mgrid[0:crop_size, 0:crop_size].astype(np.float64)
     p = np.stack([c, r], -1)
@@ -393,21 +395,10 @@ def test_flow_confidence_low_where_occluded():
     assert np.linalg.norm(arr[..., 0:2] - true_bg, axis=-1)[far].mean() < 0.5
 
 
-def test_flow_canvas_upsample():
-    """``flow_upsample`` u: the same region of the frame, u times finer."""
-    a = crop_transform((40, 30, 119, 89), 64, 1.3)
-    b = crop_transform((43, 29, 122, 88), 64, 1.3)
-    g1, (h1, w1) = flow_canvas(a, b, (120, 160), 64)
-    g2, (h2, w2) = flow_canvas(a, b, (120, 160), 64, 2.0)
-    assert g1[0, 0] == max(1.0, min(a[0, 0], b[0, 0])) and g2[0, 0] == g1[0, 0] / 2
-    assert abs(h2 - 2 * h1) <= 1 and abs(w2 - 2 * w1) <= 1
-    # the canvas's first pixel centre is half a canvas pixel inside the same left/top edge
-    np.testing.assert_allclose(g2[:2, 2] - 0.5 * g2[0, 0], g1[:2, 2] - 0.5 * g1[0, 0])
-
-
 def test_finest_scale_undoes_small_part_bias():
     """A small textured part moving over a still background (a leg in a low-resolution crop): DIS at the medium
-    preset's finest level (half resolution) sees it move 10-15 % too little; ``flow_finest_scale=0`` within 5 %."""
+    preset's finest level (half resolution) sees it move 10-15 % too little; level 0 (``FLOW_FINEST_SCALE``) within
+    5 %."""
     H = W = 96
     yy, xx = np.mgrid[0:H, 0:W]
     d = np.array([1.5, -0.8])
@@ -425,7 +416,7 @@ def test_finest_scale_undoes_small_part_bias():
         assert ratio[None] < 0.9 and 0.94 < ratio[0] < 1.06, ratio
 
 
-def test_compute_flow_cache_hit(tmp_path):
+def test_compute_flow_cache_hit(tmp_path, monkeypatch):
     root = write_seq(tmp_path / "s", n=3)
     cfg = DataConfig(crop_size=32, flow_preset="fast")
     seq = open_sequence(root, cfg=cfg)
@@ -439,7 +430,8 @@ def test_compute_flow_cache_hit(tmp_path):
     assert pair.flow_fwd.shape == (32, 32, 2) and pair.conf_bwd.shape == (32, 32)
     assert isinstance(pair.flow_fwd.base, np.memmap) or isinstance(pair.flow_fwd, np.memmap)
     c2f = seq.crop_to_frame
-    direct = pair_flow(seq.image(1), seq.image(2), c2f[1], c2f[2], 32, 1.0, make_dis("fast", cfg.flow_finest_scale))
+    dis = make_dis("fast", video_flow.FLOW_FINEST_SCALE)
+    direct = pair_flow(seq.image(1), seq.image(2), c2f[1], c2f[2], 32, video_flow.FLOW_FB_SIGMA, dis)
     np.testing.assert_array_equal(np.asarray(pair.flow_fwd), direct[..., 0:2])
 
     seq2 = open_sequence(root, cfg=cfg)
@@ -450,13 +442,14 @@ def test_compute_flow_cache_hit(tmp_path):
     cv2.imwrite(str(root / "images" / "00002.png"), texture(H, W, seed=5))
     fc3 = compute_flow(open_sequence(root, cfg=cfg), cache)
     assert (fc3.computed, fc3.hits) == (1, 1)
-    fc4 = compute_flow(seq2, cache, DataConfig(crop_size=32, flow_preset="fast", flow_fb_sigma=2.0))
-    assert fc4.computed == 2
-    other = 1 if cfg.flow_finest_scale != 1 else 0  # another finest level than the default's
-    fc5 = compute_flow(seq2, cache, DataConfig(crop_size=32, flow_preset="fast", flow_finest_scale=other))
+    with monkeypatch.context() as mp:
+        mp.setattr(video_flow, "FLOW_FB_SIGMA", 2.0)
+        assert compute_flow(seq2, cache).computed == 2
+    other = 1 if video_flow.FLOW_FINEST_SCALE != 1 else 0  # another finest level than the default's
+    with monkeypatch.context() as mp:
+        mp.setattr(video_flow, "FLOW_FINEST_SCALE", other)
+        fc5 = compute_flow(seq2, cache)
     assert fc5.computed == 2 and not set(fc5.files) & set(fc.files)
-    fc6 = compute_flow(seq2, cache, DataConfig(crop_size=32, flow_preset="fast", flow_upsample=2.0))
-    assert fc6.computed == 2 and not set(fc6.files) & (set(fc.files) | set(fc5.files))
     direct = pair_flow(seq2.image(1), seq2.image(2), c2f[1], c2f[2], 32, 1.0, make_dis("fast", other))
     np.testing.assert_array_equal(np.asarray(fc5[1].flow_fwd), direct[..., 0:2])
     # a damaged cache file is recomputed, not trusted
@@ -563,12 +556,7 @@ def test_bad_settings(tmp_path):
         ({"crop_size": 4}, "data.crop_size"),
         ({"crop_scale": 0.5}, "data.crop_scale"),
         ({"flow_preset": "slow"}, "data.flow_preset"),
-        ({"flow_fb_sigma": 0.0}, "data.flow_fb_sigma"),
-        ({"flow_finest_scale": -1}, "data.flow_finest_scale"),
-        ({"flow_finest_scale": 1.5}, "data.flow_finest_scale"),
-        ({"flow_upsample": 0.5}, "data.flow_upsample"),
         ({"object_id": -1}, "data.object_id"),
-        ({"crop_background": (0, 0)}, "data.crop_background"),
     ]:
         with pytest.raises(ConfigError, match=key):
             open_and_flow(root, tmp_path, cfg=DataConfig(**kw))
