@@ -55,8 +55,6 @@ def smoke_config(**over):
     from s3o_warp.config import make_config
 
     base = {"data.crop_size": 64, "motion.batch_frames": 4, "output.render_video": False}
-    if "coarse.init.target_vertices" in over:  # test_golden.py is pinned and names the key as it was recorded
-        over["coarse.target_vertices"] = over.pop("coarse.init.target_vertices")
     base.update(over)
     return make_config("smoke", overrides=[f"{k}={v}" for k, v in base.items()])
 

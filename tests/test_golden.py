@@ -67,7 +67,7 @@ def quadruped_record(sequence: Path, run: Path) -> dict:
 
     from s3o_warp.fit import fit
 
-    cfg = smoke_config(**{"data.crop_size": 96, "coarse.init.target_vertices": 1200, "coarse.steps": 30,
+    cfg = smoke_config(**{"data.crop_size": 96, "coarse.target_vertices": 1200, "coarse.steps": 30,
                           "motion.warmup_steps": 40, "motion.steps": 60})
     metrics = fit(sequence, run, cfg, torch.device("cpu"))
     skel = json.loads((run / "skeleton.json").read_text())
