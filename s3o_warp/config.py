@@ -83,8 +83,6 @@ class CoarseConfig:
     whose minimum is a flat mesh: with one view nothing else holds the depth."""
     freeze_depth: bool = True
     """Move vertices only in the canonical frame's image plane (x, y): one view says nothing about depth."""
-    large_steps: float = 0.0
-    """Laplacian-preconditioned vertex steps (Nicolet et al. 2021), lambda of I + lambda L; 0 = plain Adam."""
     refit_bones: bool = True
     """After the coarse fit, move each bone to its part (the faces its 2D edge labels, which the part-silhouette
     loss placed): centre to the part's area centroid, long axis to its principal axis, radii kept. The lift's
@@ -174,9 +172,6 @@ class MotionConfig:
     """Adam learning rate of root and bone rotations/translations."""
     lr_shape: float = 0.002
     """Adam learning rate of the canonical vertices."""
-    large_steps: float = 0.0
-    """Laplacian-preconditioned vertex steps (Nicolet et al. 2021): Adam on u = (I + lambda L) X mapped back
-    by a solve, so updates stay smooth (no spikes); this is lambda, 0 = plain Adam on the vertices."""
     lr_color: float = 0.02
     """Adam learning rate of the vertex-colour logits."""
     lr_bones: float = 0.005

@@ -26,7 +26,6 @@ from s3o_warp import losses as L
 from s3o_warp.config import Config, save_toml, to_dict
 from s3o_warp.errors import ConfigError, InputError
 from s3o_warp.geometry import project
-from s3o_warp.large_steps import Adam
 from s3o_warp.model import ModelInit, S3OModel, root_for_shared_principal_point
 
 log = logging.getLogger(__name__)
@@ -397,7 +396,6 @@ class Fitter:
         self.coarse = coarse_res
         self.model = S3OModel(coarse_res.init).to(device)
         self.edges = mesh_edges(self.model.faces).to(device)
-        self._large_steps = None  # Laplacian preconditioner of the current mesh, built on first use
         self.lap_ref = self.model.verts.detach().clone()  # reference shape of the relative Laplacian term
         self.sym_plane = (torch.as_tensor(coarse_res.sym_plane[0], device=device), coarse_res.sym_plane[1])
         self.gen = torch.Generator().manual_seed(cfg.seed)
@@ -497,7 +495,7 @@ class Fitter:
     def _make_optimizer(self) -> torch.optim.Optimizer:
         m, mc, cc = self.model, self.cfg.motion, self.cfg.coarse
         if self.phase == "coarse":
-            groups = [{"params": [m.verts], "lr": cc.lr, "name": "shape", "uniform": cc.large_steps > 0}]
+            groups = [{"params": [m.verts], "lr": cc.lr, "name": "shape"}]
         elif self.phase == "warmup":
             groups = [
                 {"params": [m.root_aa, m.root_t, m.bone_aa, m.bone_t], "lr": mc.lr_motion, "name": "motion"},
@@ -507,11 +505,11 @@ class Fitter:
             groups = [
                 {"params": [m.root_aa, m.root_t, m.bone_aa, m.bone_t], "lr": mc.lr_motion, "name": "motion"},
                 {"params": [m.log_focal, m.pp], "lr": mc.lr_camera, "name": "camera"},
-                {"params": [m.verts], "lr": mc.lr_shape, "name": "shape", "uniform": mc.large_steps > 0},
+                {"params": [m.verts], "lr": mc.lr_shape, "name": "shape"},
                 {"params": [m.color_logits], "lr": mc.lr_color, "name": "color"},
                 {"params": [m.bone_centers, m.bone_quat, m.bone_log_scales], "lr": mc.lr_bones, "name": "bones"},
             ]
-        return Adam(groups)  # torch's Adam; the shape group steps uniformly under large steps
+        return torch.optim.Adam(groups)
 
     def phase_steps(self, phase: str) -> int:
         mc = self.cfg.motion
@@ -969,23 +967,8 @@ class Fitter:
             p.data[keep] = v
 
     def _shape_step(self, step) -> None:
-        """Run the optimiser ``step``, with Laplacian-preconditioned vertex updates when they are on.
-
-        Exactly Adam on ``u = (I + lambda L) X``: the vertices' gradient becomes u's, and Adam's move of u
-        is mapped back to X by the same solve (see :mod:`s3o_warp.large_steps`).
-        """
-        from s3o_warp.large_steps import LargeSteps, preconditioned_step
-
-        step = self._bone_sized(step)
-        lam = self.cfg.coarse.large_steps if self.phase == "coarse" else self.cfg.motion.large_steps
-        v = self.model.verts
-        if lam <= 0 or v.grad is None or not any(v is p for g in self.opt.param_groups for p in g["params"]):
-            step()
-            return
-        pre = self._large_steps
-        if pre is None or pre.num_verts != v.shape[0] or pre.lam != float(lam):
-            pre = self._large_steps = LargeSteps(self.edges, v.shape[0], lam, v.device)
-        preconditioned_step(v, pre, step)
+        """Run the optimiser ``step`` (with bone centre steps sized when ``motion.bone_step_radius`` is on)."""
+        self._bone_sized(step)()
 
     def _bone_sized(self, step):
         """``step`` with each bone centre's move scaled by min(1, r_b / ``motion.bone_step_radius``) (r_b: the
@@ -1080,7 +1063,6 @@ class Fitter:
         m.color_logits = torch.nn.Parameter(color_logits.to(m.bone_centers).contiguous())
         m.faces = faces.to(device=m.bone_centers.device, dtype=torch.int64).contiguous()
         self.edges = mesh_edges(m.faces).to(self.device)
-        self._large_steps = None
         self.lap_ref = m.verts.detach().clone()
         old = self.opt
         lrs = {g["name"]: g["lr"] for g in old.param_groups}
