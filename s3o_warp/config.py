@@ -162,12 +162,6 @@ class MotionConfig:
     on through a crossing instead of bouncing back; 0 = the neighbour's pose as is."""
     steps: int = 1200
     """Steps of the joint shape + motion + camera phase after the warm-up."""
-    polish_steps: int = 0
-    """Not in the paper: steps after the joint phase on the final skeleton and mesh (no M-step, no resampling),
-    every learning rate x polish_lr_factor, the silhouette sigma at its final value: the motion and shape settle
-    after the last skeleton edit (which the joint phase follows by only one epoch). 0 = off."""
-    polish_lr_factor: float = 0.3
-    """Learning rates of the polish steps, as a fraction of the joint phase's."""
     lr_motion: float = 0.01
     """Adam learning rate of root and bone rotations/translations."""
     lr_shape: float = 0.002

@@ -34,10 +34,9 @@ CHECKPOINT_VERSION = 2
 BRANCH_CHECKPOINT = "branch.pt"  # in <run>/checkpoints: the state before the first M-step that reads t_o
 BRANCH_LOG = "branch.log.jsonl"
 BRANCH_MAY_DIFFER = ("skeleton.t_o", "skeleton.merge_quantile", "skeleton.t_u", "skeleton.split_end_bones",
-                     "skeleton.t_d", "skeleton.min_bone_length", "skeleton.split_inner_bones", "motion.refine_vertices",
-                     "motion.polish_steps", "motion.polish_lr_factor")
-"""The settings a branched fit may change: the refinement and the polish after the joint phase read them only
-after the branch (and output.*, preset: no effect on the fit)."""
+                     "skeleton.t_d", "skeleton.min_bone_length", "skeleton.split_inner_bones", "motion.refine_vertices")
+"""The settings a branched fit may change: the refinement reads them only after the branch (and output.*, preset:
+no effect on the fit)."""
 EARLIER_DEFAULTS = {"motion.principal_point": "frame",
                     "skeleton.split_inner_bones": False, "skeleton.joint_samples": 1}  # both changed in session 34
 """Settings whose default changed since runs were first written without them: the value such a run had (a parent
@@ -294,7 +293,7 @@ def _limb_pairs(lifted, bones) -> tuple:
 # Optimisation
 # ---------------------------------------------------------------------------------------------------
 
-PHASES = ("coarse", "warmup", "joint", "polish")
+PHASES = ("coarse", "warmup", "joint")
 
 
 class FitDiverged(InputError):
@@ -355,9 +354,6 @@ class Fitter:
         if cfg.skeleton.motion_frame not in ("crop", "frame", "body") or not 0 < cfg.skeleton.still_flow < 1:
             raise ConfigError(f"skeleton.motion_frame must be 'crop', 'frame' or 'body' and skeleton.still_flow in (0, 1) "
                               f"(a fraction of the crop side); got {cfg.skeleton.motion_frame!r}, {cfg.skeleton.still_flow}")
-        if cfg.motion.polish_steps < 0 or not cfg.motion.polish_lr_factor > 0:
-            raise ConfigError(f"motion.polish_steps must be >= 0 (0 = off) and motion.polish_lr_factor > 0, got "
-                              f"{cfg.motion.polish_steps} and {cfg.motion.polish_lr_factor}")
         for k in ("resample_vertices", "refine_vertices"):
             if getattr(cfg.motion, k) < 0:
                 raise ConfigError(f"motion.{k} must be >= 0 (a vertex count; 0 = the coarse mesh's), got "
@@ -513,8 +509,7 @@ class Fitter:
 
     def phase_steps(self, phase: str) -> int:
         mc = self.cfg.motion
-        return {"coarse": self.cfg.coarse.steps, "warmup": mc.warmup_steps, "joint": mc.steps,
-                "polish": mc.polish_steps}[phase]
+        return {"coarse": self.cfg.coarse.steps, "warmup": mc.warmup_steps, "joint": mc.steps}[phase]
 
     # -- losses -------------------------------------------------------------------------------------
     def coarse_losses(self) -> dict:
@@ -564,8 +559,6 @@ class Fitter:
 
     def sigma(self, start: float, final: float) -> float:
         """Soft-silhouette sigma of the current step: geometric decay from start to final over the phase."""
-        if self.phase == "polish":
-            return float(final)
         n = max(1, self.phase_steps(self.phase) - 1)
         return float(start * (final / start) ** min(1.0, self.step / n))
 
@@ -654,7 +647,7 @@ class Fitter:
         if mc.w_joint > 0 and len(self.skel.joints):
             J, P = self._joint_tensors()
             terms["joint"] = (mc.w_joint, L.joint_attachment_loss(m.bone_rt(frames), J, P, self.size))
-        if self.phase in ("joint", "polish"):
+        if self.phase == "joint":
             terms["lap"] = (mc.w_lap, laplacian_loss(m.verts - self.lap_ref if mc.lap_relative else m.verts, m.faces))
             terms["sym"] = (mc.w_sym, symmetry_loss(m.verts, self.sym_plane))
         k = mc.smooth_order
@@ -710,8 +703,6 @@ class Fitter:
             self._log({"phase": "eval", "step": 0, "seconds": round(time.perf_counter() - self.t0, 3),
                        "what": "initial", "iou_all_frames": self.hard_iou()})
         for phase in PHASES[PHASES.index(self.phase):]:
-            if phase == "polish" and self.phase != "polish" and self.phase_steps(phase) <= 0:
-                continue  # off: the fit ends with the joint phase, as without it
             if phase != self.phase:
                 if self.phase == "coarse":
                     self.refit_bones_to_parts()
@@ -719,11 +710,7 @@ class Fitter:
                     self.resolve_crossings()
                 self.phase, self.step = phase, 0
                 self.opt = self._make_optimizer()
-                if phase == "polish":  # the joint phase's groups, slower; the Laplacian keeps its reference
-                    for g in self.opt.param_groups:
-                        g["lr"] *= self.cfg.motion.polish_lr_factor
-                else:
-                    self.lap_ref = self.model.verts.detach().clone()
+                self.lap_ref = self.model.verts.detach().clone()
                 self._good = None
                 self.save_checkpoint()
             n = self.phase_steps(phase)
@@ -1221,7 +1208,7 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
     ``sequence_dir`` is a sequence folder, a DAVIS root (with ``name``), a DAVIS sequence folder, or a
     video file / frame folder with a separate ``masks`` folder (see ``s3o_warp.video.open_sequence``).
     ``branch_from``: a finished or running fit of the same sequence whose settings differ from ``cfg`` only in
-    ``skeleton.t_o``, ``merge_quantile``, ``t_u``, ``split_end_bones``, ``split_inner_bones``, ``t_d``, ``min_bone_length``, ``motion.refine_vertices`` or ``motion.polish_*`` (:data:`BRANCH_MAY_DIFFER`: read only from the branch on); the fit starts from its ``checkpoints/branch.pt`` (the state just
+    ``skeleton.t_o``, ``merge_quantile``, ``t_u``, ``split_end_bones``, ``split_inner_bones``, ``t_d``, ``min_bone_length`` or ``motion.refine_vertices`` (:data:`BRANCH_MAY_DIFFER`: read only from the branch on); the fit starts from its ``checkpoints/branch.pt`` (the state just
     before the first merge) and its cached flow, so a t_o study pays for the shared part once (the rest of the run directory is this fit's own). With
     ``resume`` a checkpoint of ``out_dir`` itself comes first.
     """

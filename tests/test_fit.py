@@ -227,52 +227,6 @@ def test_same_seed_repeats_bit_for_bit_on_threads(tiny_sequence, tmp_path):
     assert not differ, f"same seed, different {differ}"
 
 
-def test_polish_steps_settle_on_the_final_skeleton_slower_and_resume(tiny_sequence, tmp_path, monkeypatch):
-    """``motion.polish_steps``: after the joint phase, steps with every learning rate x polish_lr_factor, the final
-    sigma, no M-step and no resampling; an interrupt in the polish resumes to the uninterrupted result."""
-    import json
-
-    over = {"coarse.steps": 4, "motion.warmup_steps": 4, "motion.steps": 6, "skeleton.epochs": 3, "skeleton.e1": 1,
-            "motion.polish_steps": 5, "motion.polish_lr_factor": 0.25, "motion.log_every": 1}
-    cfg = _cfg(**over)
-    a, b = tmp_path / "a", tmp_path / "b"
-    seen = []
-    orig_losses, orig_m = Fitter.motion_losses, Fitter._m_step
-
-    def watch(self, frames):
-        if self.phase == "polish":
-            seen.append((self.sigma(self.cfg.motion.sigma, self.cfg.motion.sigma_final), self.model.num_bones))
-        return orig_losses(self, frames)
-
-    def no_m_step_in_polish(self, n):
-        assert self.phase == "joint", "an M-step (or resampling) ran outside the joint phase"
-        return orig_m(self, n)
-
-    monkeypatch.setattr(Fitter, "motion_losses", watch)
-    monkeypatch.setattr(Fitter, "_m_step", no_m_step_in_polish)
-    fit(tiny_sequence, a, cfg, torch.device("cpu"))
-    assert len(seen) == 5 and all(sg == cfg.motion.sigma_final for sg, _ in seen)
-    assert len({nb for _, nb in seen}) == 1  # the skeleton does not change in the polish
-    rows = [json.loads(line) for line in open(a / "log.jsonl")]
-    joint = [r for r in rows if r.get("phase") == "joint" and "lr" in r]
-    polish = [r for r in rows if r.get("phase") == "polish" and "lr" in r]
-    assert [r["step"] for r in polish] == [1, 2, 3, 4, 5]
-    for k, lr in joint[-1]["lr"].items():
-        assert polish[0]["lr"][k] == pytest.approx(0.25 * lr)
-    # off (0) is the fit without the phase: no polish rows, the same parameters as a fit that never had it
-    c = tmp_path / "c"
-    fit(tiny_sequence, c, _cfg(**{**over, "motion.polish_steps": 0}), torch.device("cpu"))
-    assert not [line for line in open(c / "log.jsonl") if '"phase": "polish"' in line]
-    assert any(not torch.equal(_final_params(a)[k], _final_params(c)[k]) for k in _final_params(a))
-
-    def interrupting(self, frames):
-        if self.phase == "polish" and self.step == 2:
-            self.request_stop()
-        return orig_losses(self, frames)
-
-    _interrupt_resume_and_compare(tiny_sequence, a, b, cfg, monkeypatch, interrupting, "polish step 3")
-
-
 def test_a_fit_branched_at_another_t_o_ends_where_a_fresh_fit_at_it_ends(tiny_sequence, tmp_path, monkeypatch):
     """``fit(..., branch_from=run)``: a fit at another t_o started from ``run``'s branch checkpoint (the state just
     before its first merge, that M-step pending) gives the parameters of a fresh fit at that t_o, runs only the
@@ -308,25 +262,24 @@ def test_a_fit_branched_at_another_t_o_ends_where_a_fresh_fit_at_it_ends(tiny_se
     secs = [r["seconds"] for r in rows]
     assert secs == sorted(secs)
     assert json.loads((c / "skeleton.json").read_text())["bones"] == json.loads((b / "skeleton.json").read_text())["bones"]
-    # merge_quantile, joint creation's t_d, the short-bone limit, the refinement's mesh and the polish are read only
-    # after the branch too
+    # merge_quantile, joint creation's t_d, the short-bone limit and the refinement's mesh are read only after the
+    # branch too
     other = {**over, "skeleton.t_o": 0.5, "skeleton.merge_quantile": 0.5, "skeleton.t_d": 0.05,
-             "skeleton.min_bone_length": 0.03, "motion.polish_steps": 3, "motion.refine_vertices": 2000}
+             "skeleton.min_bone_length": 0.03, "motion.refine_vertices": 2000}
     fit(tiny_sequence, tmp_path / "d", _cfg(**other), torch.device("cpu"))
     fit(tiny_sequence, tmp_path / "e", _cfg(**other), torch.device("cpu"), branch_from=a)
-    assert [json.loads(line)["phase"] for line in open(tmp_path / "e" / "log.jsonl")].count("polish") == 3
     pd, pe = _final_params(tmp_path / "d"), _final_params(tmp_path / "e")
     sizes = [r["vertices_after"] for r in map(json.loads, open(tmp_path / "d" / "log.jsonl")) if r.get("what") == "resample"]
     assert len(sizes) == 4 and max(sizes[:2]) < 0.7 * min(sizes[2:]), sizes  # finer from the first merge's on
     for k in pd:
-        torch.testing.assert_close(pe[k], pd[k], rtol=0, atol=1e-6, msg=f"branched fit with a polish differs in {k}")
+        torch.testing.assert_close(pe[k], pd[k], rtol=0, atol=1e-6, msg=f"branched fit with those settings differs in {k}")
 
 
 def test_a_branch_refuses_other_settings_and_a_run_without_its_checkpoint(tiny_sequence, tmp_path):
     over = {"coarse.steps": 2, "motion.warmup_steps": 2, "motion.steps": 8, "skeleton.epochs": 4, "skeleton.e1": 1}
     a = tmp_path / "a"
     fit(tiny_sequence, a, _cfg(**over), torch.device("cpu"))
-    with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o, skeleton.merge_quantile, skeleton.t_u, skeleton.split_end_bones, skeleton.t_d, skeleton.min_bone_length, skeleton.split_inner_bones, motion.refine_vertices, motion.polish_steps, motion.polish_lr_factor may differ"):
+    with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o, skeleton.merge_quantile, skeleton.t_u, skeleton.split_end_bones, skeleton.t_d, skeleton.min_bone_length, skeleton.split_inner_bones, motion.refine_vertices may differ"):
         fit(tiny_sequence, tmp_path / "b", _cfg(**over, **{"motion.lr_bones": 0.123}), torch.device("cpu"), branch_from=a)
     assert not (tmp_path / "b").exists()  # refused before any work
     # a run from before a setting existed ran with its default: that setting does not count as a difference
@@ -589,8 +542,6 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
     ("motion.resample.refine_step=2", "resample.refine_step"),
     ("motion.resample.method=isotropic", "set by motion.resample_method"),
     ("motion.resample.max_lost=0.5", "set by motion.resample_max_lost"),
-    ("motion.polish_steps=-1", "motion.polish_steps"),
-    ("motion.polish_lr_factor=0", "motion.polish_lr_factor"),
     ("skeleton.motion_frame=image", "motion_frame"),
     ("skeleton.still_flow=0", "still_flow"),
     ("skeleton.min_section_vertices=0", "min_section_vertices"),
