@@ -105,7 +105,8 @@ class MotionConfig:
     """Steps with the mesh frozen (camera and motion only)."""
     hypotheses: int = 7
     """Root-rotation hypotheses tried at the start of the warm-up (1 = off): each assumes the camera turns
-    about the object's vertical axis at a constant rate; a short fit scores each and the best is kept."""
+    about the object's vertical axis at a constant rate; a short fit of the root and camera alone scores each by
+    its optical-flow term over every frame, and the best is kept."""
     hypothesis_max_rate: float = 3.0
     """Largest turn rate of the hypotheses, degrees per frame (rates spread evenly in +-this, 0 included)."""
     hypothesis_steps: int = 30
@@ -132,22 +133,6 @@ class MotionConfig:
     """Every other setting of the even resampling (``s3o_warp.resample.ResampleSettings``: grid, repair, vertex cap,
     smoothing, isotropic passes). Its method, target_vertices and max_lost are set by resample_method,
     resample_vertices and resample_max_lost above and must stay at their defaults here."""
-    hypothesis_root_only: bool = True
-    """Score each hypothesis with only the root and camera free (the bones cannot absorb a wrong turn)."""
-    hypothesis_score: str = "flow"
-    """What ranks the hypotheses: total (the whole loss) or flow (the optical-flow term: texture motion
-    tells a turn from a deformation; falls back to total when a sequence has no flow)."""
-    hypothesis_refine: int = 3
-    """The best this many hypotheses go on for hypothesis_refine_steps more steps and are ranked again (0 or 1 =
-    off): after a short fit the scores of neighbouring turn rates are often within a few per cent."""
-    hypothesis_refine_steps: int = 60
-    """Further steps of each refined hypothesis."""
-    hypothesis_all_frames: bool = True
-    """Score each hypothesis, after its steps, by one pass over every frame (false: the mean of its last third
-    of training windows, which only sees the frames those random windows happened to hold)."""
-    hypothesis_window: int = 0
-    """Fit and score each hypothesis on the frames within this many of the canonical frame only, where the coarse
-    shape (lifted from that frame) is seen from about the view it was made from; 0 = every frame."""
     turn_rate: float | None = None
     """Known camera turn rate about the object's vertical axis, degrees per frame: used as is, no hypotheses scored."""
     warmup_sweep: float = 0.5

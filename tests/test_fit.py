@@ -378,12 +378,14 @@ def test_nan_in_a_loss_is_skipped_rolled_back_and_then_stops_naming_the_term(tin
 
 
 @pytest.mark.parametrize("refine", [0, 2])
-def test_camera_hypotheses_score_each_rate_and_keep_the_best(tiny_sequence, tmp_path, refine):
+def test_camera_hypotheses_score_each_rate_and_keep_the_best(tiny_sequence, tmp_path, refine, monkeypatch):
+    import s3o_warp.fit as F
     from s3o_warp.geometry import axis_angle_to_matrix
 
+    monkeypatch.setattr(F, "HYPOTHESIS_REFINE", refine)
+    monkeypatch.setattr(F, "HYPOTHESIS_REFINE_STEPS", 2)
     cfg = _cfg(**{"coarse.steps": 2, "motion.warmup_steps": 2, "motion.steps": 2,
-                  "motion.hypotheses": 3, "motion.hypothesis_steps": 2, "motion.hypothesis_refine": refine,
-                  "motion.hypothesis_refine_steps": 2})
+                  "motion.hypotheses": 3, "motion.hypothesis_steps": 2})
     run = tmp_path / "run"
     fit(tiny_sequence, run, cfg, torch.device("cpu"))
     rec = next(json.loads(l) for l in (run / "log.jsonl").read_text().splitlines() if '"hypotheses"' in l)
@@ -431,28 +433,20 @@ def test_hypotheses_are_scored_on_every_frame(tiny_sequence, tmp_path, monkeypat
         assert terms[k] == pytest.approx(want, rel=1e-6)
 
 
-def test_hypothesis_window_fits_and_scores_only_frames_near_the_canonical_one(tiny_sequence, tmp_path, monkeypatch):
-    """motion.hypothesis_window=w: every training window and the score's windows lie in [c - w, c + w], and the
-    score covers all of it; a negative window is refused."""
-    cfg = _cfg(**{"coarse.steps": 2, "motion.batch_frames": 3, "motion.hypotheses": 3, "motion.hypothesis_steps": 3,
-                  "motion.hypothesis_refine": 0, "motion.hypothesis_window": 1})
+def test_hypotheses_are_ranked_by_their_flow_term_or_else_the_whole_loss(tiny_sequence, tmp_path, monkeypatch):
+    """The optical-flow term over every frame ranks the hypotheses; a sequence without a flow term (faked here)
+    ranks them by the sum of its terms."""
+    import s3o_warp.fit as F
+
+    monkeypatch.setattr(F, "HYPOTHESIS_REFINE", 0)
+    cfg = _cfg(**{"coarse.steps": 2, "motion.hypotheses": 3, "motion.hypothesis_steps": 1})
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
-    coarse = coarse_model(data, cfg)
-    f = Fitter(data, coarse, cfg, tmp_path, torch.device("cpu"))
-    seen, orig = [], Fitter.motion_losses
-
-    def record(self, frames):
-        seen.append(frames.tolist())
-        return orig(self, frames)
-
-    monkeypatch.setattr(Fitter, "motion_losses", record)
-    f.select_hypothesis()
-    T, c = data.num_frames, coarse.canonical
-    near = set(range(max(0, c - 1), min(T, c + 2)))
-    assert len(near) < T  # the tiny sequence has frames outside the window
-    assert {t for w in seen for t in w} == near
-    with pytest.raises(ConfigError, match="motion.hypothesis_window"):
-        Fitter(data, coarse, _cfg(**{"motion.hypothesis_window": -1}), tmp_path, torch.device("cpu"))
+    f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
+    scored = iter([{"flow": 0.3, "sil": 0.0}, {"flow": 0.1, "sil": 5.0}, {"flow": 0.2, "sil": 0.0},
+                   {"sil": 0.3, "smooth": 0.1}, {"sil": 0.1, "smooth": 0.4}, {"sil": 0.2, "smooth": 0.0}])
+    monkeypatch.setattr(Fitter, "mean_terms", lambda self: next(scored))
+    assert f.select_hypothesis() == 0.0  # rates -3, 0, 3: the lowest flow term, not the lowest total
+    assert f.select_hypothesis() == 3.0  # no flow term: the lowest total
 
 
 def test_temporal_smoothness_orders():
