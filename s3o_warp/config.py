@@ -135,16 +135,6 @@ class MotionConfig:
     resample_vertices and resample_max_lost above and must stay at their defaults here."""
     turn_rate: float | None = None
     """Known camera turn rate about the object's vertical axis, degrees per frame: used as is, no hypotheses scored."""
-    warmup_sweep: float = 0.5
-    """Fraction of the warm-up that sweeps windows outward from the canonical frame, each new frame starting
-    from its nearest already-fitted neighbour's pose (0 = random windows only)."""
-    sweep_stride: int = 0
-    """Frames the warm-up sweep's window moves per stage (each stage gets warmup_sweep x warmup_steps / stages
-    steps); 0 = half the window. 1 brings one new frame at a time, next to a settled one."""
-    sweep_extrapolate: float = 0.0
-    """A new frame of the sweep starts from that pose plus this x the neighbour's velocity (its pose minus
-    the next fitted frame's inward) per frame of distance: 1 = constant velocity, so a swinging leg carries
-    on through a crossing instead of bouncing back; 0 = the neighbour's pose as is."""
     steps: int = 1200
     """Steps of the joint shape + motion + camera phase after the warm-up."""
     lr_motion: float = 0.01

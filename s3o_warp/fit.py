@@ -301,6 +301,9 @@ no second round): after ``motion.hypothesis_steps`` the scores of neighbouring t
 per cent (DAVIS dog: within 1.5 %; after the second round the rate the other seeds pick leads by 5-10 %)."""
 HYPOTHESIS_REFINE_STEPS = 60
 """Further steps of each refined hypothesis."""
+WARMUP_SWEEP = 0.5
+"""Fraction of the warm-up that sweeps windows outward from the canonical frame, each new frame starting from its
+nearest already-fitted neighbour's pose (the rest of the warm-up: random windows)."""
 
 
 class FitDiverged(InputError):
@@ -351,8 +354,6 @@ class Fitter:
                               f"got {cfg.skeleton.min_bone_length}")
         if cfg.motion.w_joint < 0:
             raise ConfigError(f"motion.w_joint must be >= 0 (0 = off), got {cfg.motion.w_joint}")
-        if cfg.motion.sweep_stride < 0:
-            raise ConfigError(f"motion.sweep_stride must be >= 0 (0 = half the window), got {cfg.motion.sweep_stride}")
         if cfg.skeleton.motion_frame not in ("crop", "frame", "body") or not 0 < cfg.skeleton.still_flow < 1:
             raise ConfigError(f"skeleton.motion_frame must be 'crop', 'frame' or 'body' and skeleton.still_flow in (0, 1) "
                               f"(a fraction of the crop side); got {cfg.skeleton.motion_frame!r}, {cfg.skeleton.still_flow}")
@@ -542,11 +543,12 @@ class Fitter:
         terms["lap"] = (cc.w_lap, laplacian_loss(m.verts - self.lap_ref if cc.lap_relative else m.verts, m.faces))
         return terms, sil, d.masks[fr]
 
-    def sweep_starts(self) -> list[int]:
-        """Window starts of the warm-up sweep: the canonical frame's window, then outward both ways."""
+    def sweep_starts(self, stride: int | None = None) -> list[int]:
+        """Window starts of the warm-up sweep: the canonical frame's window, then outward both ways, ``stride``
+        frames per stage (None: half the window, the fit's)."""
         T = self.data.num_frames
         n = min(self.cfg.motion.batch_frames, T)
-        stride = max(1, self.cfg.motion.sweep_stride or n // 2)
+        stride = max(1, stride or n // 2)
         s0 = min(max(self.coarse.canonical - n // 2, 0), T - n)
         right = list(range(s0 + stride, T - n + 1, stride))
         if right and right[-1] != T - n:
@@ -568,7 +570,7 @@ class Fitter:
         T = self.data.num_frames
         n = min(self.cfg.motion.batch_frames, T)
         mc = self.cfg.motion
-        sweep_steps = int(mc.warmup_sweep * mc.warmup_steps) if self.phase == "warmup" else 0
+        sweep_steps = int(WARMUP_SWEEP * mc.warmup_steps) if self.phase == "warmup" else 0
         if self.step < sweep_steps:
             starts = self.sweep_starts()
             per = max(1, sweep_steps // len(starts))
@@ -588,26 +590,18 @@ class Fitter:
 
     @torch.no_grad()
     def _seed_unvisited(self, frames: torch.Tensor) -> None:
-        """Frames entering the sweep for the first time start from the nearest visited frame's pose, plus
-        ``motion.sweep_extrapolate`` x its velocity per frame of distance (when the frame inward of it was
-        visited too): pose(f) = pose(s) + a (f - s) (pose(s) - pose(s -+ 1))."""
+        """Frames entering the sweep for the first time start from the nearest visited frame's pose."""
         m = self.model
-        a = self.cfg.motion.sweep_extrapolate
         visited = m.visited
         if not bool(visited.any()):
             visited[self.coarse.canonical] = True
         idx = torch.nonzero(visited).flatten()
-        T = m.num_frames
         for f in frames.tolist():
             if visited[f]:
                 continue
             src = int(idx[(idx - f).abs().argmin()])
-            inward = src - 1 if f > src else src + 1
-            step = a * abs(f - src) if a > 0 and 0 <= inward < T and bool(visited[inward]) else 0.0
             for p in (m.root_aa, m.root_t, m.bone_aa, m.bone_t):
                 p.data[f] = p.data[src]
-                if step:
-                    p.data[f] += step * (p.data[src] - p.data[inward])
         visited[frames] = True
 
     def motion_losses(self, frames: torch.Tensor) -> dict:

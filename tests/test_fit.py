@@ -483,9 +483,8 @@ def test_root_smooth_order_lets_a_constant_extra_turn_through(tiny_sequence, tmp
         Fitter(data, coarse_model(data, cfg), _cfg(**{"motion.root_smooth_order": 3}), tmp_path, torch.device("cpu"))
 
 
-@pytest.mark.parametrize("a", [0.0, 1.0])
-def test_sweep_seeds_new_frames_at_constant_velocity(tiny_sequence, tmp_path, a):
-    cfg = _cfg(**{"coarse.steps": 2, "motion.sweep_extrapolate": a})
+def test_sweep_seeds_new_frames_from_the_nearest_visited_one(tiny_sequence, tmp_path):
+    cfg = _cfg(**{"coarse.steps": 2})
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
     m = f.model
@@ -499,9 +498,9 @@ def test_sweep_seeds_new_frames_at_constant_velocity(tiny_sequence, tmp_path, a)
             p.data[3] = torch.randn(p.shape[1:], generator=g)
     f._seed_unvisited(torch.arange(2, 7))  # 4, 5, 6 are new, 3 their nearest visited frame, 2 inward of it
     for p in params:
-        v = p.data[3] - p.data[2]
-        for k, fr in enumerate((4, 5, 6), 1):
-            torch.testing.assert_close(p.data[fr], p.data[3] + a * k * v)
+        assert not torch.equal(p.data[2], p.data[3])
+        for fr in (4, 5, 6):
+            torch.testing.assert_close(p.data[fr], p.data[3], rtol=0, atol=0)
     assert m.visited[2:7].all()
     with pytest.raises(ConfigError, match="smooth_order"):
         Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["motion.smooth_order=3"]), tmp_path,
@@ -510,11 +509,11 @@ def test_sweep_seeds_new_frames_at_constant_velocity(tiny_sequence, tmp_path, a)
 
 @pytest.mark.parametrize("stride", [0, 1, 3])
 def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
-    cfg = _cfg(**{"coarse.steps": 2, "motion.batch_frames": 4, "motion.sweep_stride": stride})
+    cfg = _cfg(**{"coarse.steps": 2, "motion.batch_frames": 4})
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
     T, n, c = data.num_frames, 4, f.coarse.canonical
-    starts = f.sweep_starts()
+    starts = f.sweep_starts(stride)
     s0 = min(max(c - n // 2, 0), T - n)
     assert starts[0] == s0 and 0 in starts and T - n in starts and len(set(starts)) == len(starts)
     step = stride or n // 2
@@ -528,7 +527,6 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
 
 @pytest.mark.parametrize("bad, names", [
     ("skeleton.merge_quantile=1", "merge_quantile"),
-    ("motion.sweep_stride=-1", "sweep_stride"),
     ("skeleton.min_frames_fraction=1.5", "min_frames_fraction"),
     ("motion.resample_method=manifold", "motion.resample_method"),
     ("motion.resample_max_lost=1.5", "motion.resample_max_lost"),
