@@ -145,10 +145,6 @@ class MotionConfig:
     """Adam learning rate of the vertex-colour logits."""
     lr_bones: float = 0.005
     """Adam learning rate of the bone Gaussians (centres, orientations, scales)."""
-    bone_step_radius: float = 0.0
-    """Size-scaled centre steps: each bone centre's Adam step is scaled by min(1, r_b / this), r_b the bone's
-    smallest radius (object units; the object is about 1 long), so a thin bone (a tail, a lower leg) moves a
-    fraction of its own width per step instead of lr_bones and does not walk out of its part; 0 = off."""
     lr_camera: float = 0.005
     """Adam learning rate of the focal length (log) and principal points."""
     principal_point: str = "frame"

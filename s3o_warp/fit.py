@@ -929,39 +929,16 @@ class Fitter:
         stale momentum between their visits (visible as jitter and a growing flow error).
         """
         if frames is None:
-            self._shape_step(self.opt.step)
+            self.opt.step()
             return
         m = self.model
         keep = torch.ones(m.num_frames, dtype=torch.bool, device=frames.device)
         keep[frames] = False
         per_frame = (m.root_aa, m.root_t, m.bone_aa, m.bone_t) + (() if m.pp_shared else (m.pp,))
         saved = [p.data[keep].clone() for p in per_frame]
-        self._shape_step(self.opt.step)
+        self.opt.step()
         for p, v in zip(per_frame, saved):
             p.data[keep] = v
-
-    def _shape_step(self, step) -> None:
-        """Run the optimiser ``step`` (with bone centre steps sized when ``motion.bone_step_radius`` is on)."""
-        self._bone_sized(step)()
-
-    def _bone_sized(self, step):
-        """``step`` with each bone centre's move scaled by min(1, r_b / ``motion.bone_step_radius``) (r_b: the
-        bone's smallest radius before the step); ``step`` itself when that is off or the centres are not stepped."""
-        r_ref = self.cfg.motion.bone_step_radius
-        c = self.model.bone_centers
-        if r_ref <= 0 or c.grad is None or not any(c is p for g in self.opt.param_groups for p in g["params"]):
-            return step
-
-        def sized():
-            with torch.no_grad():
-                r = torch.exp(-0.5 * self.model.bone_log_scales.max(dim=1).values)  # 1 / sqrt(largest precision)
-                scale = (r / r_ref).clamp(max=1.0)[:, None].to(c.dtype)
-                old = c.detach().clone()
-            step()
-            with torch.no_grad():
-                c.copy_(old + (c - old) * scale)
-
-        return sized
 
     # -- skeleton learning ---------------------------------------------------------------------------
     def steps_per_epoch(self, n: int) -> int:

@@ -692,37 +692,6 @@ def _assert_no_jump(before, after, loss0, loss1):
     assert abs(loss1 - loss0) < 0.05 * loss0, (loss0, loss1)
 
 
-def test_bone_centres_step_by_their_size(tiny_sequence, tmp_path):
-    """motion.bone_step_radius scales each centre's step by min(1, r_b / radius) and leaves every other step alone."""
-    cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
-    saved = copy.deepcopy((f.model.state_dict(), f.opt.state_dict()))
-    gen = f.gen.get_state()  # the coverage term samples pixels
-
-    def one_step(radius):
-        f.model.load_state_dict(saved[0])
-        f.opt.load_state_dict(copy.deepcopy(saved[1]))  # Adam updates the loaded tensors in place
-        f.gen.set_state(gen)
-        f.cfg.motion.bone_step_radius = radius
-        before = {k: v.detach().clone() for k, v in f.model.named_parameters()}
-        f.opt.zero_grad()
-        terms, _, _ = f.motion_losses(frames)
-        sum(w * v for w, v in terms.values()).backward()
-        f._step_window(frames)
-        return {k: v.detach() - before[k] for k, v in f.model.named_parameters()}
-
-    plain = one_step(0.0)
-    r = torch.exp(-0.5 * saved[0]["bone_log_scales"].max(dim=1).values)  # each bone's smallest radius
-    radius = float(r.median())
-    sized = one_step(radius)
-    scale = (r / radius).clamp(max=1.0)
-    assert (scale < 0.9).any() and (scale == 1).any()
-    assert plain["bone_centers"].abs().amax(1).min() > 0  # every centre moved
-    torch.testing.assert_close(sized["bone_centers"], plain["bone_centers"] * scale[:, None], rtol=1e-4, atol=1e-8)
-    for k in plain:
-        if k != "bone_centers":
-            torch.testing.assert_close(sized[k], plain[k], rtol=0, atol=0, msg=k)
-
-
 @pytest.mark.parametrize("epoch", [0, 2])  # 0: shift + growth, 2 (= e1): upsampling
 def test_m_step_keeps_the_posed_mesh_and_the_loss(tiny_sequence, tmp_path, epoch):
     from s3o_warp.mstep import m_step
