@@ -77,10 +77,8 @@ class CoarseConfig:
     w_sym: float = 0.5
     """Weight of the symmetry loss (eq. 16)."""
     w_lap: float = 2.0
-    """Weight of the Laplacian smoothing loss (eq. 17)."""
-    lap_relative: bool = True
-    """Laplacian term on the change from the lifted shape (L(X - X_init)); false = on the shape itself,
-    whose minimum is a flat mesh: with one view nothing else holds the depth."""
+    """Weight of the Laplacian smoothing loss (eq. 17), on the change from the lifted shape (L(X - X_init)): the
+    Laplacian of the shape itself is smallest for a flat mesh, and one view holds no depth."""
     freeze_depth: bool = True
     """Move vertices only in the canonical frame's image plane (x, y): one view says nothing about depth."""
     refit_bones: bool = True
@@ -161,19 +159,12 @@ class MotionConfig:
     """Weight of the silhouette loss (mean squared error of the soft silhouette)."""
     w_flow: float = 0.02
     """Weight of the optical-flow loss (confidence-weighted L2 of rendered vs observed flow, crop pixels)."""
-    w_flow_warmup: float | None = None
-    """Weight of the optical-flow loss during the warm-up (mesh frozen, so flow errors at the outline cannot
-    bend the shape; the legs' paths through their crossings are settled there); None = ``w_flow``."""
     w_color: float = 0.2
     """Weight of the colour L1 loss."""
     w_cover: float = 0.2
     """Weight of the mask-coverage loss (``losses.coverage_loss``, not in the paper): every mask pixel the hard
     render leaves uncovered pulls its nearest projected vertex (hidden ones included) towards it, from any
     distance; it frees a far leg glued behind the near one after a crossing (horse PCK-T 83-85 -> 91-92)."""
-    w_cover_warmup: float | None = None
-    """Weight of the coverage loss during the warm-up (mesh frozen: it moves bones, not vertices); None = ``w_cover``."""
-    cover_pixels: int = 256
-    """Uncovered mask pixels sampled per frame for the coverage loss (0 = all)."""
     w_joint: float = 10.0
     """Weight of the joint-attachment loss (``losses.joint_attachment_loss``, not in the paper): each joint of
     the kinematic tree, moved by either of its two bones, lands in the same place (squared gap over the
@@ -203,26 +194,14 @@ class MotionConfig:
     rigidity: str = "dynamic"
     """Rigidity regulariser: dynamic (S3O), arap (the ablation) or none."""
     w_lap: float = 1.0
-    """Weight of the Laplacian smoothing loss on the canonical mesh."""
-    lap_relative: bool = True
-    """Laplacian term on the change from a reference shape (the mesh at the joint phase's start and after each
-    even resampling); false = on the shape itself, which shrinks the mesh where the views do not hold it (depth)."""
+    """Weight of the Laplacian smoothing loss on the canonical mesh's change from a reference shape (the mesh at the
+    joint phase's start and after each even resampling)."""
     w_sym: float = 0.2
     """Weight of the symmetry loss on the canonical mesh."""
     w_smooth: float = 0.1
     """Weight of the temporal smoothness of root and bone motion between consecutive frames."""
-    smooth_order: int = 1
-    """Temporal smoothness on first differences (1: velocity, favours standing still) or second differences
-    (2: acceleration, favours carrying on at constant speed)."""
-    root_smooth_order: int | None = None
-    """smooth_order for the root's rotation alone (None = smooth_order). The root's rotation is an offset from the
-    chosen camera hypothesis' constant turn, so order 1 holds the turn rate at the hypothesis' (a grid of whole
-    degrees per frame); order 2 lets a constant extra rate through and still damps jitter."""
     w_bone_reg: float = 0.01
     """Weight of the penalty on bone translation magnitude (keeps bones rotating about their centres)."""
-    w_bone_turn: float = 0.0
-    """Weight of the penalty on the bones' mass-weighted mean rotation (``losses.bone_turn_loss``, radians^2; not in
-    the paper): the root turns the body, the bones only articulate it. 0 = off."""
     log_every: int = 10
     """Write a log.jsonl line every this many steps."""
     nan_lr_factor: float = 0.5

@@ -304,6 +304,8 @@ HYPOTHESIS_REFINE_STEPS = 60
 WARMUP_SWEEP = 0.5
 """Fraction of the warm-up that sweeps windows outward from the canonical frame, each new frame starting from its
 nearest already-fitted neighbour's pose (the rest of the warm-up: random windows)."""
+COVER_PIXELS = 256
+"""Uncovered mask pixels sampled per frame for the coverage loss (0 = all)."""
 
 
 class FitDiverged(InputError):
@@ -334,10 +336,6 @@ class Fitter:
         from s3o_warp.kernels.regularisers import mesh_edges
 
         self.data, self.cfg, self.run_dir, self.device = data, cfg, Path(run_dir), device
-        if cfg.motion.smooth_order not in (1, 2):
-            raise ConfigError(f"motion.smooth_order must be 1 or 2, got {cfg.motion.smooth_order}")
-        if cfg.motion.root_smooth_order not in (None, 1, 2):
-            raise ConfigError(f"motion.root_smooth_order must be 1, 2 or unset, got {cfg.motion.root_smooth_order}")
         if not 0.0 <= cfg.skeleton.merge_quantile < 1.0:
             raise ConfigError(f"skeleton.merge_quantile must be in [0, 1) (0 = every frame), got {cfg.skeleton.merge_quantile}")
         if cfg.motion.crossing_window < 1 or cfg.motion.crossing_ratio <= 0 or cfg.motion.crossing_max_gap < 0:
@@ -540,7 +538,7 @@ class Fitter:
         if part_terms:
             terms["part"] = (cc.w_part, torch.stack(part_terms).mean())
         terms["sym"] = (cc.w_sym, symmetry_loss(m.verts, self.sym_plane))
-        terms["lap"] = (cc.w_lap, laplacian_loss(m.verts - self.lap_ref if cc.lap_relative else m.verts, m.faces))
+        terms["lap"] = (cc.w_lap, laplacian_loss(m.verts - self.lap_ref, m.faces))
         return terms, sil, d.masks[fr]
 
     def sweep_starts(self, stride: int | None = None) -> list[int]:
@@ -622,18 +620,16 @@ class Fitter:
         if mc.w_color > 0:
             col = interpolate(m.colors(), m.faces, face_index, bary)
             terms["color"] = (mc.w_color, L.color_loss(col, d.images[frames], fg * mask))
-        w_cover = mc.w_cover_warmup if self.phase == "warmup" and mc.w_cover_warmup is not None else mc.w_cover
-        if w_cover > 0:
+        if mc.w_cover > 0:
             uncovered = (mask > 0.5) & (face_index < 0)
-            terms["cover"] = (w_cover, L.coverage_loss(project(verts, K), uncovered, mc.cover_pixels))
-        w_flow = mc.w_flow_warmup if self.phase == "warmup" and mc.w_flow_warmup is not None else mc.w_flow
-        if w_flow > 0 and len(frames) > 1:
+            terms["cover"] = (mc.w_cover, L.coverage_loss(project(verts, K), uncovered, COVER_PIXELS))
+        if mc.w_flow > 0 and len(frames) > 1:
             vflow = L.vertex_flow_crop(verts, K)
             fi = face_index[:-1]
             rflow = interpolate(vflow, m.faces, fi, bary[:-1])
             pairs = frames[:-1]
             valid = fg[:-1] * mask[:-1]
-            terms["flow"] = (w_flow, L.flow_loss(rflow, d.flow_fwd[pairs], d.conf_fwd[pairs], valid))
+            terms["flow"] = (mc.w_flow, L.flow_loss(rflow, d.flow_fwd[pairs], d.conf_fwd[pairs], valid))
         if len(frames) > 1 and mc.rigidity != "none" and mc.w_rigid > 0:
             if mc.rigidity == "dynamic":
                 terms["rigid"] = (mc.w_rigid, dynamic_rigidity_loss(verts, self.edges, W.detach()))
@@ -643,19 +639,16 @@ class Fitter:
             J, P = self._joint_tensors()
             terms["joint"] = (mc.w_joint, L.joint_attachment_loss(m.bone_rt(frames), J, P, self.size))
         if self.phase == "joint":
-            terms["lap"] = (mc.w_lap, laplacian_loss(m.verts - self.lap_ref if mc.lap_relative else m.verts, m.faces))
+            terms["lap"] = (mc.w_lap, laplacian_loss(m.verts - self.lap_ref, m.faces))
             terms["sym"] = (mc.w_sym, symmetry_loss(m.verts, self.sym_plane))
-        k = mc.smooth_order
         smooth = (
-            L.temporal_smoothness(m.root_aa, k if mc.root_smooth_order is None else mc.root_smooth_order)
-            + L.temporal_smoothness(m.root_t, k)
-            + L.temporal_smoothness(m.bone_aa, k)
-            + L.temporal_smoothness(m.bone_t, k)
+            L.temporal_smoothness(m.root_aa)
+            + L.temporal_smoothness(m.root_t)
+            + L.temporal_smoothness(m.bone_aa)
+            + L.temporal_smoothness(m.bone_t)
         )
         terms["smooth"] = (mc.w_smooth, smooth)
         terms["bone_reg"] = (mc.w_bone_reg, (m.bone_t[frames] ** 2).mean())
-        if mc.w_bone_turn > 0:
-            terms["bone_turn"] = (mc.w_bone_turn, L.bone_turn_loss(m.bone_aa[frames], W.detach()))
         return terms, sil, mask
 
     def _joint_tensors(self) -> tuple[torch.Tensor, torch.Tensor]:
