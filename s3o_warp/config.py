@@ -58,18 +58,12 @@ class CoarseConfig:
 
     init: CoarseSettings = field(default_factory=lambda: CoarseSettings(target_vertices=1200))
     """2D skeleton, lift and initial-mesh settings (``s3o_warp.coarse``); target_vertices sets the mesh size."""
-    depth: float = 3.0
-    """Depth (object-frame units) at which the canonical frame's 2D skeleton is lifted."""
     fov_degrees: float = 45.0
     """Initial horizontal field of view of the full frame, used to initialise the focal length."""
     steps: int = 150
     """Optimisation steps of the coarse shape fit on the canonical frame."""
     lr: float = 0.01
     """Adam learning rate of the coarse shape fit (vertex offsets)."""
-    sigma: float = 1.0
-    """Soft-silhouette blur sigma (square crop pixels) at the start of the coarse fit."""
-    sigma_final: float = 0.1
-    """Sigma at the end of the coarse fit (geometric decay): a wide blur inflates thin parts by a pixel or two."""
     w_sil: float = 1.0
     """Weight of the silhouette loss."""
     w_part: float = 0.5
@@ -79,15 +73,6 @@ class CoarseConfig:
     w_lap: float = 2.0
     """Weight of the Laplacian smoothing loss (eq. 17), on the change from the lifted shape (L(X - X_init)): the
     Laplacian of the shape itself is smallest for a flat mesh, and one view holds no depth."""
-    freeze_depth: bool = True
-    """Move vertices only in the canonical frame's image plane (x, y): one view says nothing about depth."""
-    refit_bones: bool = True
-    """After the coarse fit, move each bone to its part (the faces its 2D edge labels, which the part-silhouette
-    loss placed): centre to the part's area centroid, long axis to its principal axis, radii kept. The lift's
-    bone is the straight chord of its 2D edge, and a curved part (a tail rising from the rump) leaves it
-    behind, outside the Gaussian, so the body's bone takes the part; false = the lift's bones as they are."""
-    refit_min_faces: int = 4
-    """refit_bones leaves a bone whose part has fewer faces than this as the lift made it."""
     canonical_frame: int | None = None
     """Index of the canonical frame (the one whose 2D skeleton is lifted); None = chosen automatically (the most
     horizontal skeleton with the most leg pairs). Set it when the chosen frame shows two legs overlapping."""

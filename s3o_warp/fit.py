@@ -181,6 +181,16 @@ def prepare_data(sequence_dir: Path, cfg: Config, run_dir: Path, device: torch.d
 # ---------------------------------------------------------------------------------------------------
 
 
+LIFT_DEPTH = 3.0
+"""Depth (object-frame units) at which the canonical frame's 2D skeleton is lifted."""
+COARSE_SIGMA, COARSE_SIGMA_FINAL = 1.0, 0.1
+"""Soft-silhouette blur sigma (square crop pixels) at the start and the end of the coarse fit (geometric decay): a
+wide blur inflates thin parts by a pixel or two."""
+REFIT_MIN_FACES = 4
+"""After the coarse fit, a bone whose part has fewer faces than this stays as the lift made it
+(:meth:`Fitter.refit_bones_to_parts`)."""
+
+
 @dataclass
 class CoarseResult:
     init: ModelInit
@@ -213,7 +223,7 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
     f_full = 0.5 * W / math.tan(math.radians(cfg.coarse.fov_degrees) / 2)
     f_crop = f_full * float(data.crop_scale[c])
     Kc = np.array([[f_crop, 0, (S - 1) / 2], [0, f_crop, (S - 1) / 2], [0, 0, 1]], dtype=np.float64)
-    lifted = coarse.lift_to_3d(skel, Kc, cfg.coarse.depth, settings)
+    lifted = coarse.lift_to_3d(skel, Kc, LIFT_DEPTH, settings)
     verts, faces = coarse.ellipsoid_union_mesh(lifted, settings=settings)
     bones = coarse.init_bones(lifted, settings)
     parts = coarse.part_masks(masks[c], skel)
@@ -462,20 +472,21 @@ class Fitter:
 
     @torch.no_grad()
     def refit_bones_to_parts(self) -> None:
-        """``coarse.refit_bones``: each bone onto its coarse part's faces (``skeleton_edit.fit_bones_to_parts``).
+        """After the coarse fit, each bone onto its coarse part's faces (``skeleton_edit.fit_bones_to_parts``): centre
+        to the part's area centroid, long axis to its principal axis, radii kept. The lift's bone is the straight
+        chord of its 2D edge, and a curved part (a tail rising from the rump) leaves it behind, outside the
+        Gaussian, so the body's bone takes the part.
 
-        Only the lift's bones have parts: with ``skeleton.method=virtual`` (k-means bones), or with
-        ``coarse.refit_bones`` off, nothing moves.
+        Only the lift's bones have parts: with ``skeleton.method=virtual`` (k-means bones) nothing moves.
         """
         from s3o_warp.skeleton_edit import fit_bones_to_parts, precision_to_quat_scales
 
         m = self.model
-        if not self.cfg.coarse.refit_bones or self.cfg.skeleton.method != "s3o" \
-                or m.bone_centers.shape[0] != len(self.coarse.parents):
+        if self.cfg.skeleton.method != "s3o" or m.bone_centers.shape[0] != len(self.coarse.parents):
             return
         C0 = m.bone_centers.detach().cpu().double().numpy()
         C, Q, moved = fit_bones_to_parts(m.verts.detach().cpu(), m.faces.cpu(), self.coarse.face_parts.cpu(), C0,
-                                         m.precisions().detach().cpu(), self.cfg.coarse.refit_min_faces)
+                                         m.precisions().detach().cpu(), REFIT_MIN_FACES)
         quats, log_scales = precision_to_quat_scales(Q)
         m.bone_centers.copy_(torch.as_tensor(C).to(m.bone_centers))
         m.bone_quat.copy_(torch.as_tensor(quats).to(m.bone_quat))
@@ -523,7 +534,7 @@ class Fitter:
         verts = m(fr)
         K = m.intrinsics_crop(fr)
         S = d.crop_size
-        sigma = self.sigma(cc.sigma, cc.sigma_final)
+        sigma = self.sigma(COARSE_SIGMA, COARSE_SIGMA_FINAL)
         sil = soft_silhouette(verts, m.faces, K, (S, S), sigma=sigma)
         terms = {"sil": (cc.w_sil, L.silhouette_loss(sil, d.masks[fr]))}
         parts = self.coarse.part_masks.to(self.device)
@@ -721,7 +732,7 @@ class Fitter:
                 bad = self._non_finite(terms, total)
                 if bad is None:
                     total.backward()
-                    if phase == "coarse" and self.cfg.coarse.freeze_depth and self.model.verts.grad is not None:
+                    if phase == "coarse" and self.model.verts.grad is not None:  # one view says nothing about depth:
                         self.model.verts.grad[:, 2] = 0  # object z = the canonical camera's depth axis
                     bad = self._non_finite_grad()
                 if bad is not None:
