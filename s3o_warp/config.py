@@ -156,24 +156,10 @@ class MotionConfig:
     object's size squared), so a leg swings about its hip instead of sliding across the body (joints inside
     the body: quadruped 70 -> 85 %, Fox 77 -> 98 %, horse 78 -> 89 %); 0 = off."""
     resolve_crossings: bool = True
-    """After the warm-up, let each symmetric limb pair of the lift swing through its crossings instead of
-    bouncing back (frames relabelled where that keeps the feet's velocities, ``s3o_warp.crossings``); on
-    the synthetic walks it lifts PCK-T by 6-8 points (README, Benchmarks)."""
-    crossing_recheck: bool = True
-    """Relabel once more after the first epoch of the joint phase (before the first M-step changes the
-    bones), when the legs fit better than after the warm-up."""
-    crossing_max_gap: float = 0.8
-    """Two limbs' paths may be exchanged only where their ends are at most this x the limb length apart (in
-    the image: x the limbs' mean projected length)."""
-    crossing_space: str = "image"
-    """Where the crossing step compares the paired feet's paths: image (their projections: the feet cross where
-    the pictures show it, whatever depth the fit gave them; Fox PCK-T 83.3 -> 88.8) or object (their 3D paths,
-    one mirrored onto the other's side: a warm-up that slides a leg sideways instead of swinging it hides
-    the crossing)."""
-    crossing_window: int = 2
-    """Frames over which the feet's velocities before and after a crossing are measured."""
-    crossing_ratio: float = 0.75
-    """Exchange two limbs' paths where that changes their velocities by less than this x keeping them does."""
+    """After the warm-up, and once more after the first epoch of the joint phase, let each symmetric limb pair of
+    the lift swing through its crossings instead of bouncing back (frames relabelled where the feet's paths cross
+    in the image and that keeps their velocities, ``s3o_warp.crossings``); on the synthetic walks it lifts PCK-T
+    by 6-8 points (README, Benchmarks)."""
     w_rigid: float = 1.0
     """Weight of the dynamic rigidity loss (eq. 1-2, corrected as in DESIGN.md)."""
     rigidity: str = "dynamic"

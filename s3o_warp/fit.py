@@ -348,12 +348,6 @@ class Fitter:
         self.data, self.cfg, self.run_dir, self.device = data, cfg, Path(run_dir), device
         if not 0.0 <= cfg.skeleton.merge_quantile < 1.0:
             raise ConfigError(f"skeleton.merge_quantile must be in [0, 1) (0 = every frame), got {cfg.skeleton.merge_quantile}")
-        if cfg.motion.crossing_window < 1 or cfg.motion.crossing_ratio <= 0 or cfg.motion.crossing_max_gap < 0:
-            raise ConfigError("motion.crossing_window must be >= 1, motion.crossing_ratio > 0 and motion.crossing_max_gap "
-                              f">= 0; got {cfg.motion.crossing_window}, {cfg.motion.crossing_ratio}, "
-                              f"{cfg.motion.crossing_max_gap}")
-        if cfg.motion.crossing_space not in ("object", "image"):
-            raise ConfigError(f"motion.crossing_space must be 'object' or 'image', got {cfg.motion.crossing_space!r}")
         if not 0 <= cfg.skeleton.mirror_tol < 0.5:
             raise ConfigError(f"skeleton.mirror_tol must be in [0, 0.5) (a fraction of the object's size), "
                               f"got {cfg.skeleton.mirror_tol}")
@@ -760,8 +754,9 @@ class Fitter:
                     self._log(rec)
                     bar.set_postfix(loss=f"{float(total):.4f}", iou=f"{iou:.3f}")
                 if phase == "joint" and self._epoch_end(n):
-                    if self.cfg.motion.resolve_crossings and self.cfg.motion.crossing_recheck \
-                            and self.step == self.steps_per_epoch(n):  # the lift's bones, before any M-step
+                    if self.cfg.motion.resolve_crossings and self.step == self.steps_per_epoch(n):
+                        # once more when the legs fit better than after the warm-up, with the lift's bones (before
+                        # any M-step)
                         self.resolve_crossings()
                     if self.cfg.output.branch_checkpoint and self.is_branch_point(n):
                         self.save_branch_checkpoint()
@@ -797,21 +792,17 @@ class Fitter:
         m = self.model
         virtual = self.cfg.skeleton.method == "virtual"  # k-means bones: the lift's pairs do not apply
         pairs = [] if virtual else [p for p in self.coarse.limb_pairs if max(p.a, p.b) < m.num_bones]
-        mc = self.cfg.motion
         before = (m.bone_aa.detach().clone(), m.bone_t.detach().clone())
-        image = None
-        if mc.crossing_space == "image":
-            with torch.no_grad():
-                fr = torch.arange(m.num_frames, device=self.device)
-                Rt = m.root_rt(fr).double().cpu()
-                Kf = m.intrinsics_frame(fr).double().cpu()
+        with torch.no_grad():
+            fr = torch.arange(m.num_frames, device=self.device)
+            Rt = m.root_rt(fr).double().cpu()
+            Kf = m.intrinsics_frame(fr).double().cpu()
 
-            def image(P: np.ndarray) -> np.ndarray:
-                """Object-frame points (T, 3), one per frame -> full-frame pixels (T, 2)."""
-                cam = (Rt[:, :, :3] @ torch.as_tensor(P, dtype=torch.float64)[..., None])[..., 0] + Rt[:, :, 3]
-                return project(cam[:, None], Kf)[:, 0].numpy()
+        def image(P: np.ndarray) -> np.ndarray:
+            """Object-frame points (T, 3), one per frame -> full-frame pixels (T, 2)."""
+            cam = (Rt[:, :, :3] @ torch.as_tensor(P, dtype=torch.float64)[..., None])[..., 0] + Rt[:, :, 3]
+            return project(cam[:, None], Kf)[:, 0].numpy()
         counts = resolve_crossings(m.bone_aa, m.bone_t, m.bone_centers, pairs, self.coarse.canonical,
-                                   mc.crossing_max_gap, mc.crossing_window, mc.crossing_ratio,
                                    project=image) if pairs else []
         for p, old in zip((m.bone_aa, m.bone_t), before):  # Adam's moments of a rewritten frame are the
             st = self.opt.state.get(p)                     # partner's: start them afresh
