@@ -175,12 +175,6 @@ class MotionConfig:
     """Weight of the penalty on bone translation magnitude (keeps bones rotating about their centres)."""
     log_every: int = 10
     """Write a log.jsonl line every this many steps."""
-    nan_lr_factor: float = 0.5
-    """On a NaN/Inf loss or gradient: skip the step, roll back to the last good state, scale learning rates by this."""
-    nan_max_consecutive: int = 5
-    """Stop the fit (naming the loss term) after this many NaN/Inf steps in a row."""
-    snapshot_every: int = 10
-    """Keep an in-memory copy of the last good state every this many steps (the NaN roll-back target)."""
 
 
 @dataclass

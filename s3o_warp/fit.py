@@ -318,6 +318,14 @@ COVER_PIXELS = 256
 """Uncovered mask pixels sampled per frame for the coverage loss (0 = all)."""
 
 
+NAN_LR_FACTOR = 0.5
+"""On a NaN/Inf loss or gradient: skip the step, roll back to the last good state, scale learning rates by this."""
+NAN_MAX_CONSECUTIVE = 5
+"""Stop the fit (naming the loss term) after this many NaN/Inf steps in a row."""
+SNAPSHOT_EVERY = 10
+"""Keep an in-memory copy of the last good state every this many steps (the NaN roll-back target)."""
+
+
 class FitDiverged(InputError):
     """The loss or its gradient stayed NaN/Inf for several steps in a row; the message names the term."""
 
@@ -445,8 +453,7 @@ class Fitter:
     def _recover(self, what: str) -> None:
         """Skip the step, roll back to the last good state and lower the learning rates."""
         self._bad += 1
-        mc = self.cfg.motion
-        if self._bad >= mc.nan_max_consecutive:
+        if self._bad >= NAN_MAX_CONSECUTIVE:
             path = self.save_checkpoint() if self._good is not None else None
             raise FitDiverged(
                 f"the fit diverged: {what} was NaN/Inf for {self._bad} steps in a row in phase '{self.phase}' "
@@ -459,10 +466,10 @@ class Fitter:
             for g, lr in zip(self.opt.param_groups, lrs):
                 g["lr"] = lr
         for g in self.opt.param_groups:
-            g["lr"] *= mc.nan_lr_factor
+            g["lr"] *= NAN_LR_FACTOR
         self.opt.zero_grad(set_to_none=True)
         log.warning("%s is NaN/Inf at %s step %d: step skipped, rolled back, learning rates x%g",
-                    what, self.phase, self.step, mc.nan_lr_factor)
+                    what, self.phase, self.step, NAN_LR_FACTOR)
 
     @torch.no_grad()
     def refit_bones_to_parts(self) -> None:
@@ -735,7 +742,7 @@ class Fitter:
                 self._step_window(frames)
                 self.step += 1
                 self._bad = 0
-                if self.step % self.cfg.motion.snapshot_every == 0 or self._good is None:
+                if self.step % SNAPSHOT_EVERY == 0 or self._good is None:
                     self._snapshot()
                 bar.update(1)
                 if self.step % self.cfg.motion.log_every == 0 or self.step == n:

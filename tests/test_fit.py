@@ -347,9 +347,11 @@ def test_cuda_device_without_cuda_is_one_clear_error():
 
 
 def test_nan_in_a_loss_is_skipped_rolled_back_and_then_stops_naming_the_term(tiny_sequence, tmp_path, monkeypatch):
+    import s3o_warp.fit as F
     from s3o_warp.fit import FitDiverged
 
-    cfg = _cfg(**{"coarse.steps": 2, "motion.warmup_steps": 6, "motion.steps": 2, "motion.snapshot_every": 1})
+    monkeypatch.setattr(F, "SNAPSHOT_EVERY", 1)
+    cfg = _cfg(**{"coarse.steps": 2, "motion.warmup_steps": 6, "motion.steps": 2})
     orig = Fitter.motion_losses
     calls = {"n": 0}
 
