@@ -39,18 +39,12 @@ class CoarseConfig:
     target_vertices: int = 1200
     """Vertex count of the initial mesh (the union of the lifted ellipsoids; its marching-cubes resolution is searched
     for it), and of every resampling unless motion.resample_vertices is set (>= 100)."""
-    depth: float = 3.0
-    """Depth (object-frame units) at which the canonical frame's 2D skeleton is lifted."""
     fov_degrees: float = 45.0
     """Initial horizontal field of view of the full frame, used to initialise the focal length."""
     steps: int = 150
     """Optimisation steps of the coarse shape fit on the canonical frame."""
     lr: float = 0.01
     """Adam learning rate of the coarse shape fit (vertex offsets)."""
-    sigma: float = 1.0
-    """Soft-silhouette blur sigma (square crop pixels) at the start of the coarse fit."""
-    sigma_final: float = 0.1
-    """Sigma at the end of the coarse fit (geometric decay): a wide blur inflates thin parts by a pixel or two."""
     w_sil: float = 1.0
     """Weight of the silhouette loss."""
     w_part: float = 0.5
@@ -58,21 +52,8 @@ class CoarseConfig:
     w_sym: float = 0.5
     """Weight of the symmetry loss (eq. 16)."""
     w_lap: float = 2.0
-    """Weight of the Laplacian smoothing loss (eq. 17)."""
-    lap_relative: bool = True
-    """Laplacian term on the change from the lifted shape (L(X - X_init)); false = on the shape itself,
-    whose minimum is a flat mesh: with one view nothing else holds the depth."""
-    freeze_depth: bool = True
-    """Move vertices only in the canonical frame's image plane (x, y): one view says nothing about depth."""
-    large_steps: float = 0.0
-    """Laplacian-preconditioned vertex steps (Nicolet et al. 2021), lambda of I + lambda L; 0 = plain Adam."""
-    refit_bones: bool = True
-    """After the coarse fit, move each bone to its part (the faces its 2D edge labels, which the part-silhouette
-    loss placed): centre to the part's area centroid, long axis to its principal axis, radii kept. The lift's
-    bone is the straight chord of its 2D edge, and a curved part (a tail rising from the rump) leaves it
-    behind, outside the Gaussian, so the body's bone takes the part; false = the lift's bones as they are."""
-    refit_min_faces: int = 4
-    """refit_bones leaves a bone whose part has fewer faces than this as the lift made it."""
+    """Weight of the Laplacian smoothing loss (eq. 17), on the change from the lifted shape (L(X - X_init)): the
+    Laplacian of the shape itself is smallest for a flat mesh, and one view holds no depth."""
     canonical_frame: int | None = None
     """Index of the canonical frame (the one whose 2D skeleton is lifted); None = chosen automatically (the most
     horizontal skeleton with the most leg pairs). Set it when the chosen frame shows two legs overlapping."""
@@ -88,7 +69,8 @@ class MotionConfig:
     """Steps with the mesh frozen (camera and motion only)."""
     hypotheses: int = 7
     """Root-rotation hypotheses tried at the start of the warm-up (1 = off): each assumes the camera turns
-    about the object's vertical axis at a constant rate; a short fit scores each and the best is kept."""
+    about the object's vertical axis at a constant rate; a short fit of the root and camera alone scores each by
+    its optical-flow term over every frame, and the best is kept."""
     hypothesis_max_rate: float = 3.0
     """Largest turn rate of the hypotheses, degrees per frame (rates spread evenly in +-this, 0 included)."""
     hypothesis_steps: int = 30
@@ -97,57 +79,18 @@ class MotionConfig:
     """Even resampling of the canonical mesh (paper B) every this many epochs of the joint phase; 0 = never."""
     resample_vertices: int = 0
     """Vertex count the resampled mesh aims at; 0 = the coarse mesh's count."""
-    hypothesis_root_only: bool = True
-    """Score each hypothesis with only the root and camera free (the bones cannot absorb a wrong turn)."""
-    hypothesis_score: str = "flow"
-    """What ranks the hypotheses: total (the whole loss) or flow (the optical-flow term: texture motion
-    tells a turn from a deformation; falls back to total when a sequence has no flow)."""
-    hypothesis_refine: int = 3
-    """The best this many hypotheses go on for hypothesis_refine_steps more steps and are ranked again (0 or 1 =
-    off): after a short fit the scores of neighbouring turn rates are often within a few per cent."""
-    hypothesis_refine_steps: int = 60
-    """Further steps of each refined hypothesis."""
-    hypothesis_all_frames: bool = True
-    """Score each hypothesis, after its steps, by one pass over every frame (false: the mean of its last third
-    of training windows, which only sees the frames those random windows happened to hold)."""
-    hypothesis_window: int = 0
-    """Fit and score each hypothesis on the frames within this many of the canonical frame only, where the coarse
-    shape (lifted from that frame) is seen from about the view it was made from; 0 = every frame."""
     turn_rate: float | None = None
     """Known camera turn rate about the object's vertical axis, degrees per frame: used as is, no hypotheses scored."""
-    warmup_sweep: float = 0.5
-    """Fraction of the warm-up that sweeps windows outward from the canonical frame, each new frame starting
-    from its nearest already-fitted neighbour's pose (0 = random windows only)."""
-    sweep_stride: int = 0
-    """Frames the warm-up sweep's window moves per stage (each stage gets warmup_sweep x warmup_steps / stages
-    steps); 0 = half the window. 1 brings one new frame at a time, next to a settled one."""
-    sweep_extrapolate: float = 0.0
-    """A new frame of the sweep starts from that pose plus this x the neighbour's velocity (its pose minus
-    the next fitted frame's inward) per frame of distance: 1 = constant velocity, so a swinging leg carries
-    on through a crossing instead of bouncing back; 0 = the neighbour's pose as is."""
     steps: int = 1200
     """Steps of the joint shape + motion + camera phase after the warm-up."""
-    polish_steps: int = 0
-    """Not in the paper: steps after the joint phase on the final skeleton and mesh (no M-step, no resampling),
-    every learning rate x polish_lr_factor, the silhouette sigma at its final value: the motion and shape settle
-    after the last skeleton edit (which the joint phase follows by only one epoch). 0 = off."""
-    polish_lr_factor: float = 0.3
-    """Learning rates of the polish steps, as a fraction of the joint phase's."""
     lr_motion: float = 0.01
     """Adam learning rate of root and bone rotations/translations."""
     lr_shape: float = 0.002
     """Adam learning rate of the canonical vertices."""
-    large_steps: float = 0.0
-    """Laplacian-preconditioned vertex steps (Nicolet et al. 2021): Adam on u = (I + lambda L) X mapped back
-    by a solve, so updates stay smooth (no spikes); this is lambda, 0 = plain Adam on the vertices."""
     lr_color: float = 0.02
     """Adam learning rate of the vertex-colour logits."""
     lr_bones: float = 0.005
     """Adam learning rate of the bone Gaussians (centres, orientations, scales)."""
-    bone_step_radius: float = 0.0
-    """Size-scaled centre steps: each bone centre's Adam step is scaled by min(1, r_b / this), r_b the bone's
-    smallest radius (object units; the object is about 1 long), so a thin bone (a tail, a lower leg) moves a
-    fraction of its own width per step instead of lr_bones and does not walk out of its part; 0 = off."""
     lr_camera: float = 0.005
     """Adam learning rate of the focal length (log) and principal points."""
     principal_point: str = "frame"
@@ -164,76 +107,37 @@ class MotionConfig:
     """Weight of the silhouette loss (mean squared error of the soft silhouette)."""
     w_flow: float = 0.02
     """Weight of the optical-flow loss (confidence-weighted L2 of rendered vs observed flow, crop pixels)."""
-    w_flow_warmup: float | None = None
-    """Weight of the optical-flow loss during the warm-up (mesh frozen, so flow errors at the outline cannot
-    bend the shape; the legs' paths through their crossings are settled there); None = ``w_flow``."""
     w_color: float = 0.2
     """Weight of the colour L1 loss."""
     w_cover: float = 0.2
     """Weight of the mask-coverage loss (``losses.coverage_loss``, not in the paper): every mask pixel the hard
     render leaves uncovered pulls its nearest projected vertex (hidden ones included) towards it, from any
     distance; it frees a far leg glued behind the near one after a crossing (horse PCK-T 83-85 -> 91-92)."""
-    w_cover_warmup: float | None = None
-    """Weight of the coverage loss during the warm-up (mesh frozen: it moves bones, not vertices); None = ``w_cover``."""
-    cover_pixels: int = 256
-    """Uncovered mask pixels sampled per frame for the coverage loss (0 = all)."""
     w_joint: float = 10.0
     """Weight of the joint-attachment loss (``losses.joint_attachment_loss``, not in the paper): each joint of
     the kinematic tree, moved by either of its two bones, lands in the same place (squared gap over the
     object's size squared), so a leg swings about its hip instead of sliding across the body (joints inside
     the body: quadruped 70 -> 85 %, Fox 77 -> 98 %, horse 78 -> 89 %); 0 = off."""
     resolve_crossings: bool = True
-    """After the warm-up, let each symmetric limb pair of the lift swing through its crossings instead of
-    bouncing back (frames relabelled where that keeps the feet's velocities, ``s3o_warp.crossings``); on
-    the synthetic walks it lifts PCK-T by 6-8 points (README, Benchmarks)."""
-    crossing_recheck: bool = True
-    """Relabel once more after the first epoch of the joint phase (before the first M-step changes the
-    bones), when the legs fit better than after the warm-up."""
-    crossing_max_gap: float = 0.8
-    """Two limbs' paths may be exchanged only where their ends are at most this x the limb length apart (in
-    the image: x the limbs' mean projected length)."""
-    crossing_space: str = "image"
-    """Where the crossing step compares the paired feet's paths: image (their projections: the feet cross where
-    the pictures show it, whatever depth the fit gave them; Fox PCK-T 83.3 -> 88.8) or object (their 3D paths,
-    one mirrored onto the other's side: a warm-up that slides a leg sideways instead of swinging it hides
-    the crossing)."""
-    crossing_window: int = 2
-    """Frames over which the feet's velocities before and after a crossing are measured."""
-    crossing_ratio: float = 0.75
-    """Exchange two limbs' paths where that changes their velocities by less than this x keeping them does."""
+    """After the warm-up, and once more after the first epoch of the joint phase, let each symmetric limb pair of
+    the lift swing through its crossings instead of bouncing back (frames relabelled where the feet's paths cross
+    in the image and that keeps their velocities, ``s3o_warp.crossings``); on the synthetic walks it lifts PCK-T
+    by 6-8 points (README, Benchmarks)."""
     w_rigid: float = 1.0
     """Weight of the dynamic rigidity loss (eq. 1-2, corrected as in DESIGN.md)."""
     rigidity: str = "dynamic"
     """Rigidity regulariser: dynamic (S3O), arap (the ablation) or none."""
     w_lap: float = 1.0
-    """Weight of the Laplacian smoothing loss on the canonical mesh."""
-    lap_relative: bool = True
-    """Laplacian term on the change from a reference shape (the mesh at the joint phase's start and after each
-    even resampling); false = on the shape itself, which shrinks the mesh where the views do not hold it (depth)."""
+    """Weight of the Laplacian smoothing loss on the canonical mesh's change from a reference shape (the mesh at the
+    joint phase's start and after each even resampling)."""
     w_sym: float = 0.2
     """Weight of the symmetry loss on the canonical mesh."""
     w_smooth: float = 0.1
     """Weight of the temporal smoothness of root and bone motion between consecutive frames."""
-    smooth_order: int = 1
-    """Temporal smoothness on first differences (1: velocity, favours standing still) or second differences
-    (2: acceleration, favours carrying on at constant speed)."""
-    root_smooth_order: int | None = None
-    """smooth_order for the root's rotation alone (None = smooth_order). The root's rotation is an offset from the
-    chosen camera hypothesis' constant turn, so order 1 holds the turn rate at the hypothesis' (a grid of whole
-    degrees per frame); order 2 lets a constant extra rate through and still damps jitter."""
     w_bone_reg: float = 0.01
     """Weight of the penalty on bone translation magnitude (keeps bones rotating about their centres)."""
-    w_bone_turn: float = 0.0
-    """Weight of the penalty on the bones' mass-weighted mean rotation (``losses.bone_turn_loss``, radians^2; not in
-    the paper): the root turns the body, the bones only articulate it. 0 = off."""
     log_every: int = 10
     """Write a log.jsonl line every this many steps."""
-    nan_lr_factor: float = 0.5
-    """On a NaN/Inf loss or gradient: skip the step, roll back to the last good state, scale learning rates by this."""
-    nan_max_consecutive: int = 5
-    """Stop the fit (naming the loss term) after this many NaN/Inf steps in a row."""
-    snapshot_every: int = 10
-    """Keep an in-memory copy of the last good state every this many steps (the NaN roll-back target)."""
 
 
 @dataclass

@@ -8,11 +8,11 @@ for half of every stride (the feet's ~50 % PCK-T).
 
 The two labellings differ in one thing the images do not measure: a bounce reverses both feet's
 velocity at the crossing, a swing-through does not. So for every symmetric limb pair of the coarse
-lift, the frames are labelled "as fitted" or "exchanged" where going on along the other foot's path
-keeps both feet's velocities and staying does not, and the exchanged frames get the mirrored motion of
-the partner leg (each leg keeps its own side of the symmetry plane and its attachment). Pure
-functions; the fit calls :func:`resolve_crossings` after the warm-up and again after the first epoch
-of the joint phase (``motion.resolve_crossings``, ``motion.crossing_recheck``).
+lift, the frames are labelled "as fitted" or "exchanged" where going on along the other foot's path (in the
+image, where the feet cross whatever depth the fit gave them) keeps both feet's velocities and staying does
+not, and the exchanged frames get the mirrored motion of the partner leg (each leg keeps its own side of the
+symmetry plane and its attachment). Pure functions; the fit calls :func:`resolve_crossings` after the
+warm-up and again after the first epoch of the joint phase (``motion.resolve_crossings``).
 """
 
 from __future__ import annotations
@@ -28,6 +28,14 @@ from s3o_warp.geometry import axis_angle_to_matrix, matrix_to_axis_angle
 log = logging.getLogger(__name__)
 
 _MIRROR = np.diag([1.0, 1.0, -1.0])  # the lift's symmetry plane is z = 0 in the object frame
+
+MAX_GAP = 0.8
+"""Two limbs' paths may be exchanged only where their ends are at most this x the limbs' mean projected length
+apart."""
+WINDOW = 2
+"""Frames over which the feet's velocities before and after a crossing are measured."""
+RATIO = 0.75
+"""Exchange two limbs' paths where that changes their velocities by less than this x keeping them does."""
 
 
 @dataclass(frozen=True)
@@ -46,7 +54,7 @@ class LimbPair:
 def exchange_costs(pa: np.ndarray, pb: np.ndarray, window: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """Change of velocity of both limbs at each frame boundary t -> t+1, kept or exchanged.
 
-    ``pa``, ``pb`` ``(T, D)``: the two limbs' end points (the second mirrored onto the first's side). The
+    ``pa``, ``pb`` ``(T, D)``: the two limbs' end points (in the image: ``D`` = 2). The
     velocity before the boundary is taken over ``window`` frames ending at t, the one after over
     ``window`` frames starting at t+1, each along one path, so the frame pair straddling the crossing
     (and any gap between the paths) does not count. Returns ``(stay, swap)`` ``(T-1,)``: the summed
@@ -129,15 +137,15 @@ def exchanged_motion(A_o: np.ndarray, b_o: np.ndarray, top_self, end_self, top_o
 
 @torch.no_grad()
 def resolve_crossings(bone_aa: torch.Tensor, bone_t: torch.Tensor, centres: torch.Tensor, pairs: list[LimbPair],
-                      anchor: int, max_gap: float = 0.5, window: int = 2, ratio: float = 0.75,
-                      project=None) -> list[int]:
-    """Relabel every pair's frames (:func:`crossing_labels` on the posed end points, exchanges allowed where
-    they are at most ``max_gap`` x the mean rest length of the two limbs apart) and write the exchanged
+                      anchor: int, project, max_gap: float = MAX_GAP, window: int = WINDOW,
+                      ratio: float = RATIO) -> list[int]:
+    """Relabel every pair's frames (:func:`crossing_labels` on the posed end points' image paths, exchanges
+    allowed where they are at most ``max_gap`` x the limbs' mean projected length apart) and write the exchanged
     frames' motion in place (:func:`exchanged_motion`). Returns the number of exchanged frames per pair.
 
-    ``project``: optional map of object-frame points ``(T, 3)`` to image pixels ``(T, 2)``; given, the
-    labels come from the ends' image paths (unmirrored: where the feet cross in the image, whatever depth
-    the fit gave them) and ``max_gap`` is relative to the limbs' mean projected length."""
+    ``project``: the map of object-frame points ``(T, 3)``, one per frame, to image pixels ``(T, 2)``. The paths
+    are compared unmirrored, where the feet cross in the image, whatever depth the fit gave them: a warm-up that
+    slides a leg sideways instead of swinging it keeps the 3D ends apart at the crossing."""
     T = bone_aa.shape[0]
     R_all = axis_angle_to_matrix(bone_aa.detach().reshape(-1, 3).double()).reshape(T, -1, 3, 3).cpu().numpy()
     t_all = bone_t.detach().double().cpu().numpy()
@@ -152,14 +160,9 @@ def resolve_crossings(bone_aa: torch.Tensor, bone_t: torch.Tensor, centres: torc
         def posed(k, x, maps=maps):
             return np.einsum("tij,j->ti", maps[k][0], x) + maps[k][1]
 
-        end_a, end_b = posed(pr.a, pr.end_a), posed(pr.b, pr.end_b)
-        if project is None:  # 3D: b mirrored onto a's side
-            end_b = end_b @ _MIRROR.T
-            length = 0.5 * (np.linalg.norm(pr.end_a - pr.top_a) + np.linalg.norm(pr.end_b - pr.top_b))
-        else:  # the image: each end where it is seen, lengths as projected
-            end_a, end_b = project(end_a), project(end_b)
-            length = 0.5 * float((np.linalg.norm(end_a - project(posed(pr.a, pr.top_a)), axis=1)
-                                  + np.linalg.norm(end_b - project(posed(pr.b, pr.top_b)), axis=1)).mean())
+        end_a, end_b = project(posed(pr.a, pr.end_a)), project(posed(pr.b, pr.end_b))
+        length = 0.5 * float((np.linalg.norm(end_a - project(posed(pr.a, pr.top_a)), axis=1)
+                              + np.linalg.norm(end_b - project(posed(pr.b, pr.top_b)), axis=1)).mean())
         s = crossing_labels(end_a, end_b, anchor, max_gap * length, window, ratio)
         counts.append(int(s.sum()))
         if not s.any():

@@ -26,7 +26,6 @@ from s3o_warp import losses as L
 from s3o_warp.config import Config, save_toml, to_dict
 from s3o_warp.errors import ConfigError, InputError
 from s3o_warp.geometry import project
-from s3o_warp.large_steps import Adam
 from s3o_warp.model import ModelInit, S3OModel, root_for_shared_principal_point
 
 log = logging.getLogger(__name__)
@@ -37,10 +36,9 @@ checkpoint of another version is refused (its run must be refit)."""
 BRANCH_CHECKPOINT = "branch.pt"  # in <run>/checkpoints: the state before the first M-step that reads t_o
 BRANCH_LOG = "branch.log.jsonl"
 BRANCH_MAY_DIFFER = ("skeleton.t_o", "skeleton.merge_quantile", "skeleton.t_u", "skeleton.split_end_bones",
-                     "skeleton.t_d", "skeleton.min_bone_length", "skeleton.split_inner_bones",
-                     "motion.polish_steps", "motion.polish_lr_factor")
-"""The settings a branched fit may change: the refinement and the polish after the joint phase read them only
-after the branch (and output.*, preset: no effect on the fit)."""
+                     "skeleton.t_d", "skeleton.min_bone_length", "skeleton.split_inner_bones")
+"""The settings a branched fit may change: the refinement reads them only after the branch (and output.*, preset:
+no effect on the fit)."""
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -181,6 +179,16 @@ def prepare_data(sequence_dir: Path, cfg: Config, run_dir: Path, device: torch.d
 # ---------------------------------------------------------------------------------------------------
 
 
+LIFT_DEPTH = 3.0
+"""Depth (object-frame units) at which the canonical frame's 2D skeleton is lifted."""
+COARSE_SIGMA, COARSE_SIGMA_FINAL = 1.0, 0.1
+"""Soft-silhouette blur sigma (square crop pixels) at the start and the end of the coarse fit (geometric decay): a
+wide blur inflates thin parts by a pixel or two."""
+REFIT_MIN_FACES = 4
+"""After the coarse fit, a bone whose part has fewer faces than this stays as the lift made it
+(:meth:`Fitter.refit_bones_to_parts`)."""
+
+
 @dataclass
 class CoarseResult:
     init: ModelInit
@@ -213,7 +221,7 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
     f_full = 0.5 * W / math.tan(math.radians(cfg.coarse.fov_degrees) / 2)
     f_crop = f_full * float(data.crop_scale[c])
     Kc = np.array([[f_crop, 0, (S - 1) / 2], [0, f_crop, (S - 1) / 2], [0, 0, 1]], dtype=np.float64)
-    lifted = coarse.lift_to_3d(skel, Kc, cfg.coarse.depth, settings)
+    lifted = coarse.lift_to_3d(skel, Kc, LIFT_DEPTH, settings)
     verts, faces = coarse.ellipsoid_union_mesh(lifted, settings=settings)
     bones = coarse.init_bones(lifted, settings)
     parts = coarse.part_masks(masks[c], skel)
@@ -293,7 +301,27 @@ def _limb_pairs(lifted, bones) -> tuple:
 # Optimisation
 # ---------------------------------------------------------------------------------------------------
 
-PHASES = ("coarse", "warmup", "joint", "polish")
+PHASES = ("coarse", "warmup", "joint")
+
+HYPOTHESIS_REFINE = 3
+"""Camera hypotheses: the best this many go on for HYPOTHESIS_REFINE_STEPS more steps and are ranked again (0 or 1 =
+no second round): after ``motion.hypothesis_steps`` the scores of neighbouring turn rates are often within a few
+per cent (DAVIS dog: within 1.5 %; after the second round the rate the other seeds pick leads by 5-10 %)."""
+HYPOTHESIS_REFINE_STEPS = 60
+"""Further steps of each refined hypothesis."""
+WARMUP_SWEEP = 0.5
+"""Fraction of the warm-up that sweeps windows outward from the canonical frame, each new frame starting from its
+nearest already-fitted neighbour's pose (the rest of the warm-up: random windows)."""
+COVER_PIXELS = 256
+"""Uncovered mask pixels sampled per frame for the coverage loss (0 = all)."""
+
+
+NAN_LR_FACTOR = 0.5
+"""On a NaN/Inf loss or gradient: skip the step, roll back to the last good state, scale learning rates by this."""
+NAN_MAX_CONSECUTIVE = 5
+"""Stop the fit (naming the loss term) after this many NaN/Inf steps in a row."""
+SNAPSHOT_EVERY = 10
+"""Keep an in-memory copy of the last good state every this many steps (the NaN roll-back target)."""
 
 
 class FitDiverged(InputError):
@@ -324,23 +352,8 @@ class Fitter:
         from s3o_warp.kernels.regularisers import mesh_edges
 
         self.data, self.cfg, self.run_dir, self.device = data, cfg, Path(run_dir), device
-        if cfg.motion.hypothesis_score not in ("total", "flow"):  # refused before any work is done
-            raise ConfigError(f"motion.hypothesis_score must be 'total' or 'flow', got {cfg.motion.hypothesis_score!r}")
-        if cfg.motion.hypothesis_window < 0:
-            raise ConfigError(f"motion.hypothesis_window must be >= 0 (frames either side of the canonical one; 0 = "
-                              f"every frame), got {cfg.motion.hypothesis_window}")
-        if cfg.motion.smooth_order not in (1, 2):
-            raise ConfigError(f"motion.smooth_order must be 1 or 2, got {cfg.motion.smooth_order}")
-        if cfg.motion.root_smooth_order not in (None, 1, 2):
-            raise ConfigError(f"motion.root_smooth_order must be 1, 2 or unset, got {cfg.motion.root_smooth_order}")
         if not 0.0 <= cfg.skeleton.merge_quantile < 1.0:
             raise ConfigError(f"skeleton.merge_quantile must be in [0, 1) (0 = every frame), got {cfg.skeleton.merge_quantile}")
-        if cfg.motion.crossing_window < 1 or cfg.motion.crossing_ratio <= 0 or cfg.motion.crossing_max_gap < 0:
-            raise ConfigError("motion.crossing_window must be >= 1, motion.crossing_ratio > 0 and motion.crossing_max_gap "
-                              f">= 0; got {cfg.motion.crossing_window}, {cfg.motion.crossing_ratio}, "
-                              f"{cfg.motion.crossing_max_gap}")
-        if cfg.motion.crossing_space not in ("object", "image"):
-            raise ConfigError(f"motion.crossing_space must be 'object' or 'image', got {cfg.motion.crossing_space!r}")
         if not 0 <= cfg.skeleton.mirror_tol < 0.5:
             raise ConfigError(f"skeleton.mirror_tol must be in [0, 0.5) (a fraction of the object's size), "
                               f"got {cfg.skeleton.mirror_tol}")
@@ -349,14 +362,9 @@ class Fitter:
                               f"got {cfg.skeleton.min_bone_length}")
         if cfg.motion.w_joint < 0:
             raise ConfigError(f"motion.w_joint must be >= 0 (0 = off), got {cfg.motion.w_joint}")
-        if cfg.motion.sweep_stride < 0:
-            raise ConfigError(f"motion.sweep_stride must be >= 0 (0 = half the window), got {cfg.motion.sweep_stride}")
         if cfg.skeleton.motion_frame not in ("crop", "frame", "body") or not 0 < cfg.skeleton.still_flow < 1:
             raise ConfigError(f"skeleton.motion_frame must be 'crop', 'frame' or 'body' and skeleton.still_flow in (0, 1) "
                               f"(a fraction of the crop side); got {cfg.skeleton.motion_frame!r}, {cfg.skeleton.still_flow}")
-        if cfg.motion.polish_steps < 0 or not cfg.motion.polish_lr_factor > 0:
-            raise ConfigError(f"motion.polish_steps must be >= 0 (0 = off) and motion.polish_lr_factor > 0, got "
-                              f"{cfg.motion.polish_steps} and {cfg.motion.polish_lr_factor}")
         if cfg.motion.resample_vertices < 0:
             raise ConfigError(f"motion.resample_vertices must be >= 0 (a vertex count; 0 = the coarse mesh's), got "
                               f"{cfg.motion.resample_vertices}")
@@ -375,7 +383,6 @@ class Fitter:
         self.coarse = coarse_res
         self.model = S3OModel(coarse_res.init).to(device)
         self.edges = mesh_edges(self.model.faces).to(device)
-        self._large_steps = None  # Laplacian preconditioner of the current mesh, built on first use
         self.lap_ref = self.model.verts.detach().clone()  # reference shape of the relative Laplacian term
         self.sym_plane = (torch.as_tensor(coarse_res.sym_plane[0], device=device), coarse_res.sym_plane[1])
         self.gen = torch.Generator().manual_seed(cfg.seed)
@@ -424,8 +431,7 @@ class Fitter:
     def _recover(self, what: str) -> None:
         """Skip the step, roll back to the last good state and lower the learning rates."""
         self._bad += 1
-        mc = self.cfg.motion
-        if self._bad >= mc.nan_max_consecutive:
+        if self._bad >= NAN_MAX_CONSECUTIVE:
             path = self.save_checkpoint() if self._good is not None else None
             raise FitDiverged(
                 f"the fit diverged: {what} was NaN/Inf for {self._bad} steps in a row in phase '{self.phase}' "
@@ -438,27 +444,28 @@ class Fitter:
             for g, lr in zip(self.opt.param_groups, lrs):
                 g["lr"] = lr
         for g in self.opt.param_groups:
-            g["lr"] *= mc.nan_lr_factor
+            g["lr"] *= NAN_LR_FACTOR
         self.opt.zero_grad(set_to_none=True)
         log.warning("%s is NaN/Inf at %s step %d: step skipped, rolled back, learning rates x%g",
-                    what, self.phase, self.step, mc.nan_lr_factor)
+                    what, self.phase, self.step, NAN_LR_FACTOR)
 
     @torch.no_grad()
     def refit_bones_to_parts(self) -> None:
-        """``coarse.refit_bones``: each bone onto its coarse part's faces (``skeleton_edit.fit_bones_to_parts``).
+        """After the coarse fit, each bone onto its coarse part's faces (``skeleton_edit.fit_bones_to_parts``): centre
+        to the part's area centroid, long axis to its principal axis, radii kept. The lift's bone is the straight
+        chord of its 2D edge, and a curved part (a tail rising from the rump) leaves it behind, outside the
+        Gaussian, so the body's bone takes the part.
 
-        Only the lift's bones have parts: with ``skeleton.method=virtual`` (k-means bones), or with
-        ``coarse.refit_bones`` off, nothing moves.
+        Only the lift's bones have parts: with ``skeleton.method=virtual`` (k-means bones) nothing moves.
         """
         from s3o_warp.skeleton_edit import fit_bones_to_parts, precision_to_quat_scales
 
         m = self.model
-        if not self.cfg.coarse.refit_bones or self.cfg.skeleton.method != "s3o" \
-                or m.bone_centers.shape[0] != len(self.coarse.parents):
+        if self.cfg.skeleton.method != "s3o" or m.bone_centers.shape[0] != len(self.coarse.parents):
             return
         C0 = m.bone_centers.detach().cpu().double().numpy()
         C, Q, moved = fit_bones_to_parts(m.verts.detach().cpu(), m.faces.cpu(), self.coarse.face_parts.cpu(), C0,
-                                         m.precisions().detach().cpu(), self.cfg.coarse.refit_min_faces)
+                                         m.precisions().detach().cpu(), REFIT_MIN_FACES)
         quats, log_scales = precision_to_quat_scales(Q)
         m.bone_centers.copy_(torch.as_tensor(C).to(m.bone_centers))
         m.bone_quat.copy_(torch.as_tensor(quats).to(m.bone_quat))
@@ -475,7 +482,7 @@ class Fitter:
     def _make_optimizer(self) -> torch.optim.Optimizer:
         m, mc, cc = self.model, self.cfg.motion, self.cfg.coarse
         if self.phase == "coarse":
-            groups = [{"params": [m.verts], "lr": cc.lr, "name": "shape", "uniform": cc.large_steps > 0}]
+            groups = [{"params": [m.verts], "lr": cc.lr, "name": "shape"}]
         elif self.phase == "warmup":
             groups = [
                 {"params": [m.root_aa, m.root_t, m.bone_aa, m.bone_t], "lr": mc.lr_motion, "name": "motion"},
@@ -485,16 +492,15 @@ class Fitter:
             groups = [
                 {"params": [m.root_aa, m.root_t, m.bone_aa, m.bone_t], "lr": mc.lr_motion, "name": "motion"},
                 {"params": [m.log_focal, m.pp], "lr": mc.lr_camera, "name": "camera"},
-                {"params": [m.verts], "lr": mc.lr_shape, "name": "shape", "uniform": mc.large_steps > 0},
+                {"params": [m.verts], "lr": mc.lr_shape, "name": "shape"},
                 {"params": [m.color_logits], "lr": mc.lr_color, "name": "color"},
                 {"params": [m.bone_centers, m.bone_quat, m.bone_log_scales], "lr": mc.lr_bones, "name": "bones"},
             ]
-        return Adam(groups)  # torch's Adam; the shape group steps uniformly under large steps
+        return torch.optim.Adam(groups)
 
     def phase_steps(self, phase: str) -> int:
         mc = self.cfg.motion
-        return {"coarse": self.cfg.coarse.steps, "warmup": mc.warmup_steps, "joint": mc.steps,
-                "polish": mc.polish_steps}[phase]
+        return {"coarse": self.cfg.coarse.steps, "warmup": mc.warmup_steps, "joint": mc.steps}[phase]
 
     # -- losses -------------------------------------------------------------------------------------
     def coarse_losses(self) -> dict:
@@ -507,7 +513,7 @@ class Fitter:
         verts = m(fr)
         K = m.intrinsics_crop(fr)
         S = d.crop_size
-        sigma = self.sigma(cc.sigma, cc.sigma_final)
+        sigma = self.sigma(COARSE_SIGMA, COARSE_SIGMA_FINAL)
         sil = soft_silhouette(verts, m.faces, K, (S, S), sigma=sigma)
         terms = {"sil": (cc.w_sil, L.silhouette_loss(sil, d.masks[fr]))}
         parts = self.coarse.part_masks.to(self.device)
@@ -522,14 +528,15 @@ class Fitter:
         if part_terms:
             terms["part"] = (cc.w_part, torch.stack(part_terms).mean())
         terms["sym"] = (cc.w_sym, symmetry_loss(m.verts, self.sym_plane))
-        terms["lap"] = (cc.w_lap, laplacian_loss(m.verts - self.lap_ref if cc.lap_relative else m.verts, m.faces))
+        terms["lap"] = (cc.w_lap, laplacian_loss(m.verts - self.lap_ref, m.faces))
         return terms, sil, d.masks[fr]
 
-    def sweep_starts(self) -> list[int]:
-        """Window starts of the warm-up sweep: the canonical frame's window, then outward both ways."""
+    def sweep_starts(self, stride: int | None = None) -> list[int]:
+        """Window starts of the warm-up sweep: the canonical frame's window, then outward both ways, ``stride``
+        frames per stage (None: half the window, the fit's)."""
         T = self.data.num_frames
         n = min(self.cfg.motion.batch_frames, T)
-        stride = max(1, self.cfg.motion.sweep_stride or n // 2)
+        stride = max(1, stride or n // 2)
         s0 = min(max(self.coarse.canonical - n // 2, 0), T - n)
         right = list(range(s0 + stride, T - n + 1, stride))
         if right and right[-1] != T - n:
@@ -544,8 +551,6 @@ class Fitter:
 
     def sigma(self, start: float, final: float) -> float:
         """Soft-silhouette sigma of the current step: geometric decay from start to final over the phase."""
-        if self.phase == "polish":
-            return float(final)
         n = max(1, self.phase_steps(self.phase) - 1)
         return float(start * (final / start) ** min(1.0, self.step / n))
 
@@ -553,7 +558,7 @@ class Fitter:
         T = self.data.num_frames
         n = min(self.cfg.motion.batch_frames, T)
         mc = self.cfg.motion
-        sweep_steps = int(mc.warmup_sweep * mc.warmup_steps) if self.phase == "warmup" else 0
+        sweep_steps = int(WARMUP_SWEEP * mc.warmup_steps) if self.phase == "warmup" else 0
         if self.step < sweep_steps:
             starts = self.sweep_starts()
             per = max(1, sweep_steps // len(starts))
@@ -563,37 +568,28 @@ class Fitter:
             return frames
         return self._random_window()
 
-    def _random_window(self, lo: int = 0, hi: int | None = None) -> torch.Tensor:
-        """A window of consecutive frames around a uniformly drawn frame of [lo, hi) (clamped, so ends are
-        covered too)."""
-        hi = self.data.num_frames if hi is None else hi
-        n = min(self.cfg.motion.batch_frames, hi - lo)
-        centre = lo + int(torch.randint(0, hi - lo, (1,), generator=self.gen))
-        start = min(max(centre - n // 2, lo), hi - n)
+    def _random_window(self) -> torch.Tensor:
+        """A window of consecutive frames around a uniformly drawn frame (clamped, so ends are covered too)."""
+        T = self.data.num_frames
+        n = min(self.cfg.motion.batch_frames, T)
+        centre = int(torch.randint(0, T, (1,), generator=self.gen))
+        start = min(max(centre - n // 2, 0), T - n)
         return torch.arange(start, start + n, device=self.device)
 
     @torch.no_grad()
     def _seed_unvisited(self, frames: torch.Tensor) -> None:
-        """Frames entering the sweep for the first time start from the nearest visited frame's pose, plus
-        ``motion.sweep_extrapolate`` x its velocity per frame of distance (when the frame inward of it was
-        visited too): pose(f) = pose(s) + a (f - s) (pose(s) - pose(s -+ 1))."""
+        """Frames entering the sweep for the first time start from the nearest visited frame's pose."""
         m = self.model
-        a = self.cfg.motion.sweep_extrapolate
         visited = m.visited
         if not bool(visited.any()):
             visited[self.coarse.canonical] = True
         idx = torch.nonzero(visited).flatten()
-        T = m.num_frames
         for f in frames.tolist():
             if visited[f]:
                 continue
             src = int(idx[(idx - f).abs().argmin()])
-            inward = src - 1 if f > src else src + 1
-            step = a * abs(f - src) if a > 0 and 0 <= inward < T and bool(visited[inward]) else 0.0
             for p in (m.root_aa, m.root_t, m.bone_aa, m.bone_t):
                 p.data[f] = p.data[src]
-                if step:
-                    p.data[f] += step * (p.data[src] - p.data[inward])
         visited[frames] = True
 
     def motion_losses(self, frames: torch.Tensor) -> dict:
@@ -614,18 +610,16 @@ class Fitter:
         if mc.w_color > 0:
             col = interpolate(m.colors(), m.faces, face_index, bary)
             terms["color"] = (mc.w_color, L.color_loss(col, d.images[frames], fg * mask))
-        w_cover = mc.w_cover_warmup if self.phase == "warmup" and mc.w_cover_warmup is not None else mc.w_cover
-        if w_cover > 0:
+        if mc.w_cover > 0:
             uncovered = (mask > 0.5) & (face_index < 0)
-            terms["cover"] = (w_cover, L.coverage_loss(project(verts, K), uncovered, mc.cover_pixels))
-        w_flow = mc.w_flow_warmup if self.phase == "warmup" and mc.w_flow_warmup is not None else mc.w_flow
-        if w_flow > 0 and len(frames) > 1:
+            terms["cover"] = (mc.w_cover, L.coverage_loss(project(verts, K), uncovered, COVER_PIXELS))
+        if mc.w_flow > 0 and len(frames) > 1:
             vflow = L.vertex_flow_crop(verts, K)
             fi = face_index[:-1]
             rflow = interpolate(vflow, m.faces, fi, bary[:-1])
             pairs = frames[:-1]
             valid = fg[:-1] * mask[:-1]
-            terms["flow"] = (w_flow, L.flow_loss(rflow, d.flow_fwd[pairs], d.conf_fwd[pairs], valid))
+            terms["flow"] = (mc.w_flow, L.flow_loss(rflow, d.flow_fwd[pairs], d.conf_fwd[pairs], valid))
         if len(frames) > 1 and mc.rigidity != "none" and mc.w_rigid > 0:
             if mc.rigidity == "dynamic":
                 terms["rigid"] = (mc.w_rigid, dynamic_rigidity_loss(verts, self.edges, W.detach()))
@@ -634,20 +628,17 @@ class Fitter:
         if mc.w_joint > 0 and len(self.skel.joints):
             J, P = self._joint_tensors()
             terms["joint"] = (mc.w_joint, L.joint_attachment_loss(m.bone_rt(frames), J, P, self.size))
-        if self.phase in ("joint", "polish"):
-            terms["lap"] = (mc.w_lap, laplacian_loss(m.verts - self.lap_ref if mc.lap_relative else m.verts, m.faces))
+        if self.phase == "joint":
+            terms["lap"] = (mc.w_lap, laplacian_loss(m.verts - self.lap_ref, m.faces))
             terms["sym"] = (mc.w_sym, symmetry_loss(m.verts, self.sym_plane))
-        k = mc.smooth_order
         smooth = (
-            L.temporal_smoothness(m.root_aa, k if mc.root_smooth_order is None else mc.root_smooth_order)
-            + L.temporal_smoothness(m.root_t, k)
-            + L.temporal_smoothness(m.bone_aa, k)
-            + L.temporal_smoothness(m.bone_t, k)
+            L.temporal_smoothness(m.root_aa)
+            + L.temporal_smoothness(m.root_t)
+            + L.temporal_smoothness(m.bone_aa)
+            + L.temporal_smoothness(m.bone_t)
         )
         terms["smooth"] = (mc.w_smooth, smooth)
         terms["bone_reg"] = (mc.w_bone_reg, (m.bone_t[frames] ** 2).mean())
-        if mc.w_bone_turn > 0:
-            terms["bone_turn"] = (mc.w_bone_turn, L.bone_turn_loss(m.bone_aa[frames], W.detach()))
         return terms, sil, mask
 
     def _joint_tensors(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -690,8 +681,6 @@ class Fitter:
             self._log({"phase": "eval", "step": 0, "seconds": round(time.perf_counter() - self.t0, 3),
                        "what": "initial", "iou_all_frames": self.hard_iou()})
         for phase in PHASES[PHASES.index(self.phase):]:
-            if phase == "polish" and self.phase != "polish" and self.phase_steps(phase) <= 0:
-                continue  # off: the fit ends with the joint phase, as without it
             if phase != self.phase:
                 if self.phase == "coarse":
                     self.refit_bones_to_parts()
@@ -699,11 +688,7 @@ class Fitter:
                     self.resolve_crossings()
                 self.phase, self.step = phase, 0
                 self.opt = self._make_optimizer()
-                if phase == "polish":  # the joint phase's groups, slower; the Laplacian keeps its reference
-                    for g in self.opt.param_groups:
-                        g["lr"] *= self.cfg.motion.polish_lr_factor
-                else:
-                    self.lap_ref = self.model.verts.detach().clone()
+                self.lap_ref = self.model.verts.detach().clone()
                 self._good = None
                 self.save_checkpoint()
             n = self.phase_steps(phase)
@@ -726,7 +711,7 @@ class Fitter:
                 bad = self._non_finite(terms, total)
                 if bad is None:
                     total.backward()
-                    if phase == "coarse" and self.cfg.coarse.freeze_depth and self.model.verts.grad is not None:
+                    if phase == "coarse" and self.model.verts.grad is not None:  # one view says nothing about depth:
                         self.model.verts.grad[:, 2] = 0  # object z = the canonical camera's depth axis
                     bad = self._non_finite_grad()
                 if bad is not None:
@@ -735,7 +720,7 @@ class Fitter:
                 self._step_window(frames)
                 self.step += 1
                 self._bad = 0
-                if self.step % self.cfg.motion.snapshot_every == 0 or self._good is None:
+                if self.step % SNAPSHOT_EVERY == 0 or self._good is None:
                     self._snapshot()
                 bar.update(1)
                 if self.step % self.cfg.motion.log_every == 0 or self.step == n:
@@ -754,8 +739,9 @@ class Fitter:
                     self._log(rec)
                     bar.set_postfix(loss=f"{float(total):.4f}", iou=f"{iou:.3f}")
                 if phase == "joint" and self._epoch_end(n):
-                    if self.cfg.motion.resolve_crossings and self.cfg.motion.crossing_recheck \
-                            and self.step == self.steps_per_epoch(n):  # the lift's bones, before any M-step
+                    if self.cfg.motion.resolve_crossings and self.step == self.steps_per_epoch(n):
+                        # once more when the legs fit better than after the warm-up, with the lift's bones (before
+                        # any M-step)
                         self.resolve_crossings()
                     if self.cfg.output.branch_checkpoint and self.is_branch_point(n):
                         self.save_branch_checkpoint()
@@ -791,21 +777,17 @@ class Fitter:
         m = self.model
         virtual = self.cfg.skeleton.method == "virtual"  # k-means bones: the lift's pairs do not apply
         pairs = [] if virtual else [p for p in self.coarse.limb_pairs if max(p.a, p.b) < m.num_bones]
-        mc = self.cfg.motion
         before = (m.bone_aa.detach().clone(), m.bone_t.detach().clone())
-        image = None
-        if mc.crossing_space == "image":
-            with torch.no_grad():
-                fr = torch.arange(m.num_frames, device=self.device)
-                Rt = m.root_rt(fr).double().cpu()
-                Kf = m.intrinsics_frame(fr).double().cpu()
+        with torch.no_grad():
+            fr = torch.arange(m.num_frames, device=self.device)
+            Rt = m.root_rt(fr).double().cpu()
+            Kf = m.intrinsics_frame(fr).double().cpu()
 
-            def image(P: np.ndarray) -> np.ndarray:
-                """Object-frame points (T, 3), one per frame -> full-frame pixels (T, 2)."""
-                cam = (Rt[:, :, :3] @ torch.as_tensor(P, dtype=torch.float64)[..., None])[..., 0] + Rt[:, :, 3]
-                return project(cam[:, None], Kf)[:, 0].numpy()
+        def image(P: np.ndarray) -> np.ndarray:
+            """Object-frame points (T, 3), one per frame -> full-frame pixels (T, 2)."""
+            cam = (Rt[:, :, :3] @ torch.as_tensor(P, dtype=torch.float64)[..., None])[..., 0] + Rt[:, :, 3]
+            return project(cam[:, None], Kf)[:, 0].numpy()
         counts = resolve_crossings(m.bone_aa, m.bone_t, m.bone_centers, pairs, self.coarse.canonical,
-                                   mc.crossing_max_gap, mc.crossing_window, mc.crossing_ratio,
                                    project=image) if pairs else []
         for p, old in zip((m.bone_aa, m.bone_t), before):  # Adam's moments of a rewritten frame are the
             st = self.opt.state.get(p)                     # partner's: start them afresh
@@ -833,8 +815,6 @@ class Fitter:
         if 0.0 not in rates:
             rates = np.append(rates, 0.0)
         gen_state = self.gen.get_state()
-        w = mc.hypothesis_window  # the frames near the canonical one, or all
-        lo, hi = (0, T) if w <= 0 else (max(0, c - w), min(T, c + w + 1))
 
         def apply(rate: float) -> None:
             m.load_state_dict(base)
@@ -845,16 +825,17 @@ class Fitter:
                 m.root_R0.copy_(base["root_R0"] @ axis_angle_to_matrix(aa))
 
         def optimiser() -> torch.optim.Optimizer:
+            """Only the root and the camera are free: with the bones free too, they absorb a wrong turn."""
             return torch.optim.Adam([
                 {"params": [m.root_aa, m.root_t], "lr": mc.lr_motion, "name": "motion"},
-                {"params": [m.log_focal, m.pp], "lr": mc.lr_camera, "name": "camera"}]) if mc.hypothesis_root_only \
-                else self._make_optimizer()
+                {"params": [m.log_focal, m.pp], "lr": mc.lr_camera, "name": "camera"}])
 
         def train(steps: int) -> float:
-            """``steps`` warm-up steps on random windows from the current state, then this hypothesis' score."""
-            losses = []  # only ranked on when not scoring over all frames (each float() is a device sync)
+            """``steps`` warm-up steps on random windows from the current state, then this hypothesis' score: its
+            optical-flow term over every frame (texture motion tells a turn from a deformation), or the whole loss
+            when the sequence has no flow term."""
             for _ in range(steps):
-                frames = self._random_window(lo, hi)
+                frames = self._random_window()
                 self.opt.zero_grad(set_to_none=True)
                 terms, _, _ = self.motion_losses(frames)
                 total = sum(w * v for w, v in terms.values())
@@ -864,22 +845,16 @@ class Fitter:
                 total.backward()
                 self._step_window(frames)
                 self.step += 1
-                if not mc.hypothesis_all_frames:
-                    score = terms["flow"][1] if mc.hypothesis_score == "flow" and "flow" in terms else total
-                    losses.append(float(score.detach()))
             self.step = 0
-            if mc.hypothesis_all_frames or not losses:
-                terms = self.mean_terms(lo, hi)
-                key = "flow" if mc.hypothesis_score == "flow" and "flow" in terms else None
-                return terms[key] if key else sum(terms.values())
-            return float(np.mean(losses[-max(1, len(losses) // 3):]))
+            terms = self.mean_terms()
+            return terms["flow"] if "flow" in terms else sum(terms.values())
 
         refined: dict[float, float] = {}
         if mc.turn_rate is not None:
             rates, scores = np.array([float(mc.turn_rate)]), [float("nan")]
         else:
             scores, snaps = [], []
-            keep = mc.hypothesis_refine > 1 and mc.hypothesis_refine_steps > 0
+            keep = HYPOTHESIS_REFINE > 1 and HYPOTHESIS_REFINE_STEPS > 0
             for rate in rates:
                 apply(float(rate))
                 self.gen.set_state(gen_state)
@@ -888,13 +863,13 @@ class Fitter:
                 snaps.append((copy.deepcopy(m.state_dict()), copy.deepcopy(self.opt.state_dict()),
                               self.gen.get_state()) if keep else None)
             if keep:  # the best few go on from where they stopped and are ranked again
-                top = [int(i) for i in np.argsort(scores)[: mc.hypothesis_refine] if np.isfinite(scores[i])]
+                top = [int(i) for i in np.argsort(scores)[:HYPOTHESIS_REFINE] if np.isfinite(scores[i])]
                 for i in top:
                     m.load_state_dict(snaps[i][0])
                     self.opt = optimiser()
                     self.opt.load_state_dict(snaps[i][1])
                     self.gen.set_state(snaps[0][2])  # the same windows for every finalist
-                    refined[float(rates[i])] = train(mc.hypothesis_refine_steps)
+                    refined[float(rates[i])] = train(HYPOTHESIS_REFINE_STEPS)
                 del snaps
         if refined:
             best = min(refined, key=refined.get)
@@ -913,14 +888,13 @@ class Fitter:
         return best
 
     @torch.no_grad()
-    def mean_terms(self, lo: int = 0, hi: int | None = None) -> dict[str, float]:
-        """Every weighted motion loss term averaged over windows that cover frames [lo, hi) (default all; no
-        step taken)."""
-        hi = self.data.num_frames if hi is None else hi
-        n = min(self.cfg.motion.batch_frames, hi - lo)
-        starts = list(range(lo, hi - n + 1, max(n - 1, 1)))  # consecutive windows share a frame: every pair
-        if starts[-1] != hi - n:
-            starts.append(hi - n)
+    def mean_terms(self) -> dict[str, float]:
+        """Every weighted motion loss term averaged over windows that cover every frame (no step taken)."""
+        T = self.data.num_frames
+        n = min(self.cfg.motion.batch_frames, T)
+        starts = list(range(0, T - n + 1, max(n - 1, 1)))  # consecutive windows share a frame: every pair
+        if starts[-1] != T - n:
+            starts.append(T - n)
         acc: dict[str, list[float]] = {}
         for s in starts:
             terms, _, _ = self.motion_losses(torch.arange(s, s + n, device=self.device))
@@ -935,54 +909,16 @@ class Fitter:
         stale momentum between their visits (visible as jitter and a growing flow error).
         """
         if frames is None:
-            self._shape_step(self.opt.step)
+            self.opt.step()
             return
         m = self.model
         keep = torch.ones(m.num_frames, dtype=torch.bool, device=frames.device)
         keep[frames] = False
         per_frame = (m.root_aa, m.root_t, m.bone_aa, m.bone_t) + (() if m.pp_shared else (m.pp,))
         saved = [p.data[keep].clone() for p in per_frame]
-        self._shape_step(self.opt.step)
+        self.opt.step()
         for p, v in zip(per_frame, saved):
             p.data[keep] = v
-
-    def _shape_step(self, step) -> None:
-        """Run the optimiser ``step``, with Laplacian-preconditioned vertex updates when they are on.
-
-        Exactly Adam on ``u = (I + lambda L) X``: the vertices' gradient becomes u's, and Adam's move of u
-        is mapped back to X by the same solve (see :mod:`s3o_warp.large_steps`).
-        """
-        from s3o_warp.large_steps import LargeSteps, preconditioned_step
-
-        step = self._bone_sized(step)
-        lam = self.cfg.coarse.large_steps if self.phase == "coarse" else self.cfg.motion.large_steps
-        v = self.model.verts
-        if lam <= 0 or v.grad is None or not any(v is p for g in self.opt.param_groups for p in g["params"]):
-            step()
-            return
-        pre = self._large_steps
-        if pre is None or pre.num_verts != v.shape[0] or pre.lam != float(lam):
-            pre = self._large_steps = LargeSteps(self.edges, v.shape[0], lam, v.device)
-        preconditioned_step(v, pre, step)
-
-    def _bone_sized(self, step):
-        """``step`` with each bone centre's move scaled by min(1, r_b / ``motion.bone_step_radius``) (r_b: the
-        bone's smallest radius before the step); ``step`` itself when that is off or the centres are not stepped."""
-        r_ref = self.cfg.motion.bone_step_radius
-        c = self.model.bone_centers
-        if r_ref <= 0 or c.grad is None or not any(c is p for g in self.opt.param_groups for p in g["params"]):
-            return step
-
-        def sized():
-            with torch.no_grad():
-                r = torch.exp(-0.5 * self.model.bone_log_scales.max(dim=1).values)  # 1 / sqrt(largest precision)
-                scale = (r / r_ref).clamp(max=1.0)[:, None].to(c.dtype)
-                old = c.detach().clone()
-            step()
-            with torch.no_grad():
-                c.copy_(old + (c - old) * scale)
-
-        return sized
 
     # -- skeleton learning ---------------------------------------------------------------------------
     def steps_per_epoch(self, n: int) -> int:
@@ -1041,7 +977,6 @@ class Fitter:
         m.color_logits = torch.nn.Parameter(color_logits.to(m.bone_centers).contiguous())
         m.faces = faces.to(device=m.bone_centers.device, dtype=torch.int64).contiguous()
         self.edges = mesh_edges(m.faces).to(self.device)
-        self._large_steps = None
         self.lap_ref = m.verts.detach().clone()
         old = self.opt
         lrs = {g["name"]: g["lr"] for g in old.param_groups}
@@ -1196,7 +1131,7 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
     ``sequence_dir`` is a sequence folder, a DAVIS root (with ``name``), a DAVIS sequence folder, or a
     video file / frame folder with a separate ``masks`` folder (see ``s3o_warp.video.open_sequence``).
     ``branch_from``: a finished or running fit of the same sequence whose settings differ from ``cfg`` only in
-    ``skeleton.t_o``, ``merge_quantile``, ``t_u``, ``split_end_bones``, ``split_inner_bones``, ``t_d``, ``min_bone_length`` or ``motion.polish_*`` (:data:`BRANCH_MAY_DIFFER`: read only from the branch on); the fit starts from its ``checkpoints/branch.pt`` (the state just
+    ``skeleton.t_o``, ``merge_quantile``, ``t_u``, ``split_end_bones``, ``split_inner_bones``, ``t_d`` or ``min_bone_length`` (:data:`BRANCH_MAY_DIFFER`: read only from the branch on); the fit starts from its ``checkpoints/branch.pt`` (the state just
     before the first merge) and its cached flow, so a t_o study pays for the shared part once (the rest of the run directory is this fit's own). With
     ``resume`` a checkpoint of ``out_dir`` itself comes first.
     """

@@ -67,16 +67,6 @@ def joint_attachment_loss(bone_rt: torch.Tensor, joints: torch.Tensor, positions
     return (gap**2).sum(-1).mean() / (scale * scale)
 
 
-def bone_turn_loss(bone_aa: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-    """The bones' turn of the whole body: ``|sum_b m_b a_b^t|^2`` averaged over the frames, with ``a_b^t`` each
-    bone's axis-angle ``bone_aa`` ``(t, B, 3)`` and ``m_b`` its share of the skinning weight ``weights`` ``(N, B)``.
-    Root and bones can turn the mesh alike; this leaves the turn of the whole to the root (the camera), so the
-    bones articulate instead of turning the body back against it."""
-    mass = weights.sum(0) / weights.sum().clamp_min(1e-12)
-    mean = torch.einsum("b,tbi->ti", mass.to(bone_aa), bone_aa)
-    return (mean**2).sum(-1).mean()
-
-
 def soft_iou(sil: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Hard IoU of ``sil > 0.5`` against ``mask > 0.5`` per frame ``(t,)`` (for progress reporting)."""
     a = sil > 0.5
@@ -110,14 +100,9 @@ def color_loss(rendered: torch.Tensor, image: torch.Tensor, valid: torch.Tensor)
     return (err * valid).sum() / valid.sum().clamp_min(1.0) / 3.0
 
 
-def temporal_smoothness(x: torch.Tensor, order: int = 1) -> torch.Tensor:
-    """Mean squared ``order``-th difference over frames of a per-frame parameter ``(T, ...)``: 1 penalises
-    velocity (consecutive frames differing), 2 acceleration (``x[t+1] - 2 x[t] + x[t-1]``)."""
-    if order not in (1, 2):
-        raise ValueError(f"temporal_smoothness(): order must be 1 or 2, got {order}")
-    if x.shape[0] < order + 1:
+def temporal_smoothness(x: torch.Tensor) -> torch.Tensor:
+    """Mean squared first difference over frames of a per-frame parameter ``(T, ...)`` (velocity: consecutive
+    frames differing)."""
+    if x.shape[0] < 2:
         return x.sum() * 0
-    d = x[1:] - x[:-1]
-    if order == 2:
-        d = d[1:] - d[:-1]
-    return (d**2).mean()
+    return ((x[1:] - x[:-1]) ** 2).mean()

@@ -86,6 +86,11 @@ def test_exchanged_motion_mirrors_partner():
     assert np.allclose(got, (np.einsum("tij,j->ti", A_b, S @ x) + b_b) @ S.T)
 
 
+def _side_view(P):
+    """A camera looking along z, 100 px per unit: object-frame points (T, 3) -> pixels (T, 2)."""
+    return 100.0 * np.asarray(P)[:, :2]
+
+
 def test_resolve_crossings_in_place():
     """Two one-bone legs hanging from a hip, bouncing: after the call they swing through, and the
     frames where nothing changes keep their parameters bit for bit."""
@@ -108,7 +113,7 @@ def test_resolve_crossings_in_place():
         bone_t[:, k] = torch.as_tensor(top - c - np.einsum("tij,j->ti", R, top - c))  # hip fixed
     pair = LimbPair(a=1, b=2, top_a=top_a, end_a=end_a, top_b=top_b, end_b=end_b)
     before_aa, before_t = bone_aa.clone(), bone_t.clone()
-    counts = resolve_crossings(bone_aa, bone_t, centres, [pair], anchor=2, max_gap=0.6)
+    counts = resolve_crossings(bone_aa, bone_t, centres, [pair], anchor=2, project=_side_view, max_gap=0.6)
     assert counts[0] > 0
     R = axis_angle_to_matrix(bone_aa[:, 1]).numpy()
     foot = np.einsum("tij,j->ti", R, end_a - centres[1].numpy()) + centres[1].numpy() + bone_t[:, 1].numpy()
@@ -128,8 +133,8 @@ def test_resolve_crossings_in_place():
 
 def test_resolve_crossings_in_the_image_where_depth_hides_the_crossing():
     """The bouncing legs of test_resolve_crossings_in_place, with leg b also pushed back in depth by two leg
-    lengths: in 3D the feet never meet, so the object-frame step exchanges nothing; seen along depth
-    (``project``) they cross, and the image step makes them swing through."""
+    lengths: in 3D the feet never meet; seen along depth (``project``) they cross, and the step makes them swing
+    through."""
     T = 21
     top_a, top_b = np.array([0.0, 0.0, -0.1]), np.array([0.0, 0.0, 0.1])
     end_a, end_b = np.array([0.0, 0.5, -0.1]), np.array([0.0, 0.5, 0.1])
@@ -151,15 +156,12 @@ def test_resolve_crossings_in_the_image_where_depth_hides_the_crossing():
         return bone_aa, bone_t
 
     bone_aa, bone_t = legs()
-    assert resolve_crossings(bone_aa, bone_t, centres, [LimbPair(1, 2, top_a, end_a, top_b, end_b)], anchor=2,
-                             max_gap=0.6) == [0]
     seen = []
 
-    def project(P):  # a camera looking along z, 100 px per unit
+    def project(P):
         seen.append(P.shape)
-        return 100.0 * np.asarray(P)[:, :2]
+        return _side_view(P)
 
-    bone_aa, bone_t = legs()
     counts = resolve_crossings(bone_aa, bone_t, centres, [LimbPair(1, 2, top_a, end_a, top_b, end_b)], anchor=2,
                                max_gap=0.6, project=project)
     assert counts[0] > 0 and seen and all(s == (T, 3) for s in seen)
@@ -170,11 +172,11 @@ def test_resolve_crossings_in_the_image_where_depth_hides_the_crossing():
 
 
 def test_fit_projects_the_crossing_paths_like_the_model(tiny_sequence, tmp_path, monkeypatch):
-    """motion.crossing_space = image (the default) hands the step a projection equal to the model's full-frame one."""
+    """The fit hands the step a projection equal to the model's full-frame one."""
     import s3o_warp.crossings as X
     from s3o_warp.fit import Fitter, coarse_model, prepare_data
 
-    cfg = _cfg(**{"motion.crossing_space": "image"})
+    cfg = _cfg()
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     fitter = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
     got = {}
@@ -193,10 +195,6 @@ def test_fit_projects_the_crossing_paths_like_the_model(tiny_sequence, tmp_path,
         q = (m.intrinsics_frame(fr) @ cam[..., None])[..., 0]
         want = (q[:, :2] / q[:, 2:]).numpy()
     assert np.allclose(got["project"](obj), want, atol=1e-3)
-    fitter.cfg = _cfg(**{"motion.crossing_space": "object"})
-    fitter.resolve_crossings()
-    assert got["project"] is None  # object: no projection
-    assert _cfg().motion.crossing_space == "image"
 
 # -- in the fit ---------------------------------------------------------------------------------------
 
@@ -218,8 +216,8 @@ def test_lift_gives_mirrored_limb_pairs(tiny_sequence, tmp_path):
 
 
 def test_fit_relabels_after_warmup_and_first_epoch_and_resets_moments(tiny_sequence, tmp_path, monkeypatch):
-    """The pass runs at the warm-up's end and (crossing_recheck) before the first M-step; Adam's moments of
-    the rewritten frames start afresh, the others are kept."""
+    """The pass runs at the warm-up's end and again before the first M-step; Adam's moments of the rewritten
+    frames start afresh, the others are kept."""
     import json
 
     import s3o_warp.crossings as X
@@ -244,14 +242,6 @@ def test_fit_relabels_after_warmup_and_first_epoch_and_resets_moments(tiny_seque
     assert [c for c in calls if isinstance(c, tuple)] == [("warmup", 5), ("joint", 4)]
     log = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in log if r.get("what") == "crossings"] == [5, 4]  # warm-up step 5, joint step 4
-    # with recheck off, only the warm-up pass
-    calls.clear()
-    cfg2 = _cfg(**{"coarse.steps": 5, "motion.warmup_steps": 5, "motion.steps": 8, "skeleton.epochs": 2,
-                   "motion.resolve_crossings": True, "motion.crossing_recheck": False, "motion.hypotheses": 1})
-    (tmp_path / "b").mkdir()
-    Fitter(data, coarse_model(data, cfg2), cfg2, tmp_path / "b", torch.device("cpu")).run()
-    log = [json.loads(line) for line in (tmp_path / "b" / "log.jsonl").read_text().splitlines()]
-    assert [r["step"] for r in log if r.get("what") == "crossings"] == [5]
 
 
 def test_moments_of_rewritten_frames_are_reset(tiny_sequence, tmp_path, monkeypatch):
@@ -284,11 +274,10 @@ def test_moments_of_rewritten_frames_are_reset(tiny_sequence, tmp_path, monkeypa
         assert torch.equal(st[key][mask], before[key][mask])
 
 
-@pytest.mark.parametrize("bad", ["motion.crossing_window=0", "motion.crossing_ratio=0", "motion.crossing_max_gap=-1",
-                                 "motion.crossing_space=screen", "motion.w_joint=-1",
+@pytest.mark.parametrize("bad", ["motion.w_joint=-1",
                                  "skeleton.min_bone_length=-0.1", "skeleton.min_bone_length=0.5",
                                  "skeleton.mirror_tol=-0.01", "skeleton.mirror_tol=0.5"])
-def test_bad_crossing_settings_are_refused(tiny_sequence, tmp_path, bad):
+def test_bad_joint_and_bone_settings_are_refused(tiny_sequence, tmp_path, bad):
     from s3o_warp.errors import ConfigError
     from s3o_warp.fit import Fitter, coarse_model, prepare_data
 

@@ -83,6 +83,7 @@ def test_fit_of_a_small_clip_learns_the_quadrupeds_skeleton(small_sequence, tmp_
 def test_bones_refit_to_their_coarse_parts_only_for_the_lift(tiny_sequence, tmp_path, method):
     """After the coarse fit the lift's bones move onto their labelled parts; the virtual baseline's k-means
     bones have no parts and stay where k-means put them, and its short fit runs through."""
+    from s3o_warp.fit import REFIT_MIN_FACES
     from s3o_warp.skeleton_edit import fit_bones_to_parts
 
     cfg = _cfg(**{"coarse.steps": 4, "motion.warmup_steps": 4, "motion.steps": 4, "skeleton.method": method,
@@ -101,7 +102,7 @@ def test_bones_refit_to_their_coarse_parts_only_for_the_lift(tiny_sequence, tmp_
         fitter.run()
         assert (fitter.skel.parents == np.r_[-1, np.zeros(5, int)]).all()
         return
-    C, Q, moved = fit_bones_to_parts(m.verts.detach(), m.faces, res.face_parts, C0, Q0, cfg.coarse.refit_min_faces)
+    C, Q, moved = fit_bones_to_parts(m.verts.detach(), m.faces, res.face_parts, C0, Q0, REFIT_MIN_FACES)
     assert moved.sum() >= len(moved) // 2 and np.abs(C - C0.numpy()).max() > 1e-3
     np.testing.assert_allclose(m.bone_centers.detach().numpy(), C, atol=1e-6)
     np.testing.assert_allclose(m.precisions().detach().numpy(), Q, rtol=1e-4, atol=1e-3 * np.abs(Q).max())
@@ -230,52 +231,6 @@ def test_same_seed_repeats_bit_for_bit_on_threads(tiny_sequence, tmp_path):
     assert not differ, f"same seed, different {differ}"
 
 
-def test_polish_steps_settle_on_the_final_skeleton_slower_and_resume(tiny_sequence, tmp_path, monkeypatch):
-    """``motion.polish_steps``: after the joint phase, steps with every learning rate x polish_lr_factor, the final
-    sigma, no M-step and no resampling; an interrupt in the polish resumes to the uninterrupted result."""
-    import json
-
-    over = {"coarse.steps": 4, "motion.warmup_steps": 4, "motion.steps": 6, "skeleton.epochs": 3, "skeleton.e1": 1,
-            "motion.polish_steps": 5, "motion.polish_lr_factor": 0.25, "motion.log_every": 1}
-    cfg = _cfg(**over)
-    a, b = tmp_path / "a", tmp_path / "b"
-    seen = []
-    orig_losses, orig_m = Fitter.motion_losses, Fitter._m_step
-
-    def watch(self, frames):
-        if self.phase == "polish":
-            seen.append((self.sigma(self.cfg.motion.sigma, self.cfg.motion.sigma_final), self.model.num_bones))
-        return orig_losses(self, frames)
-
-    def no_m_step_in_polish(self, n):
-        assert self.phase == "joint", "an M-step (or resampling) ran outside the joint phase"
-        return orig_m(self, n)
-
-    monkeypatch.setattr(Fitter, "motion_losses", watch)
-    monkeypatch.setattr(Fitter, "_m_step", no_m_step_in_polish)
-    fit(tiny_sequence, a, cfg, torch.device("cpu"))
-    assert len(seen) == 5 and all(sg == cfg.motion.sigma_final for sg, _ in seen)
-    assert len({nb for _, nb in seen}) == 1  # the skeleton does not change in the polish
-    rows = [json.loads(line) for line in open(a / "log.jsonl")]
-    joint = [r for r in rows if r.get("phase") == "joint" and "lr" in r]
-    polish = [r for r in rows if r.get("phase") == "polish" and "lr" in r]
-    assert [r["step"] for r in polish] == [1, 2, 3, 4, 5]
-    for k, lr in joint[-1]["lr"].items():
-        assert polish[0]["lr"][k] == pytest.approx(0.25 * lr)
-    # off (0) is the fit without the phase: no polish rows, the same parameters as a fit that never had it
-    c = tmp_path / "c"
-    fit(tiny_sequence, c, _cfg(**{**over, "motion.polish_steps": 0}), torch.device("cpu"))
-    assert not [line for line in open(c / "log.jsonl") if '"phase": "polish"' in line]
-    assert any(not torch.equal(_final_params(a)[k], _final_params(c)[k]) for k in _final_params(a))
-
-    def interrupting(self, frames):
-        if self.phase == "polish" and self.step == 2:
-            self.request_stop()
-        return orig_losses(self, frames)
-
-    _interrupt_resume_and_compare(tiny_sequence, a, b, cfg, monkeypatch, interrupting, "polish step 3")
-
-
 def test_a_fit_branched_at_another_t_o_ends_where_a_fresh_fit_at_it_ends(tiny_sequence, tmp_path, monkeypatch):
     """``fit(..., branch_from=run)``: a fit at another t_o started from ``run``'s branch checkpoint (the state just
     before its first merge, that M-step pending) gives the parameters of a fresh fit at that t_o, runs only the
@@ -311,22 +266,21 @@ def test_a_fit_branched_at_another_t_o_ends_where_a_fresh_fit_at_it_ends(tiny_se
     secs = [r["seconds"] for r in rows]
     assert secs == sorted(secs)
     assert json.loads((c / "skeleton.json").read_text())["bones"] == json.loads((b / "skeleton.json").read_text())["bones"]
-    # merge_quantile, joint creation's t_d, the short-bone limit and the polish are read only after the branch too
+    # merge_quantile, joint creation's t_d and the short-bone limit are read only after the branch too
     other = {**over, "skeleton.t_o": 0.5, "skeleton.merge_quantile": 0.5, "skeleton.t_d": 0.05,
-             "skeleton.min_bone_length": 0.03, "motion.polish_steps": 3}
+             "skeleton.min_bone_length": 0.03}
     fit(tiny_sequence, tmp_path / "d", _cfg(**other), torch.device("cpu"))
     fit(tiny_sequence, tmp_path / "e", _cfg(**other), torch.device("cpu"), branch_from=a)
-    assert [json.loads(line)["phase"] for line in open(tmp_path / "e" / "log.jsonl")].count("polish") == 3
     pd, pe = _final_params(tmp_path / "d"), _final_params(tmp_path / "e")
     for k in pd:
-        torch.testing.assert_close(pe[k], pd[k], rtol=0, atol=1e-6, msg=f"branched fit with a polish differs in {k}")
+        torch.testing.assert_close(pe[k], pd[k], rtol=0, atol=1e-6, msg=f"branched fit with those settings differs in {k}")
 
 
 def test_a_branch_refuses_other_settings_and_a_run_without_its_checkpoint(tiny_sequence, tmp_path):
     over = {"coarse.steps": 2, "motion.warmup_steps": 2, "motion.steps": 8, "skeleton.epochs": 4, "skeleton.e1": 1}
     a = tmp_path / "a"
     fit(tiny_sequence, a, _cfg(**over), torch.device("cpu"))
-    with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o, skeleton.merge_quantile, skeleton.t_u, skeleton.split_end_bones, skeleton.t_d, skeleton.min_bone_length, skeleton.split_inner_bones, motion.polish_steps, motion.polish_lr_factor may differ"):
+    with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o, skeleton.merge_quantile, skeleton.t_u, skeleton.split_end_bones, skeleton.t_d, skeleton.min_bone_length, skeleton.split_inner_bones may differ"):
         fit(tiny_sequence, tmp_path / "b", _cfg(**over, **{"motion.lr_bones": 0.123}), torch.device("cpu"), branch_from=a)
     assert not (tmp_path / "b").exists()  # refused before any work
     # a setting the parent's run lacks is a difference, not read at today's default
@@ -392,9 +346,11 @@ def test_cuda_device_without_cuda_is_one_clear_error():
 
 
 def test_nan_in_a_loss_is_skipped_rolled_back_and_then_stops_naming_the_term(tiny_sequence, tmp_path, monkeypatch):
+    import s3o_warp.fit as F
     from s3o_warp.fit import FitDiverged
 
-    cfg = _cfg(**{"coarse.steps": 2, "motion.warmup_steps": 6, "motion.steps": 2, "motion.snapshot_every": 1})
+    monkeypatch.setattr(F, "SNAPSHOT_EVERY", 1)
+    cfg = _cfg(**{"coarse.steps": 2, "motion.warmup_steps": 6, "motion.steps": 2})
     orig = Fitter.motion_losses
     calls = {"n": 0}
 
@@ -424,12 +380,14 @@ def test_nan_in_a_loss_is_skipped_rolled_back_and_then_stops_naming_the_term(tin
 
 
 @pytest.mark.parametrize("refine", [0, 2])
-def test_camera_hypotheses_score_each_rate_and_keep_the_best(tiny_sequence, tmp_path, refine):
+def test_camera_hypotheses_score_each_rate_and_keep_the_best(tiny_sequence, tmp_path, refine, monkeypatch):
+    import s3o_warp.fit as F
     from s3o_warp.geometry import axis_angle_to_matrix
 
+    monkeypatch.setattr(F, "HYPOTHESIS_REFINE", refine)
+    monkeypatch.setattr(F, "HYPOTHESIS_REFINE_STEPS", 2)
     cfg = _cfg(**{"coarse.steps": 2, "motion.warmup_steps": 2, "motion.steps": 2,
-                  "motion.hypotheses": 3, "motion.hypothesis_steps": 2, "motion.hypothesis_refine": refine,
-                  "motion.hypothesis_refine_steps": 2})
+                  "motion.hypotheses": 3, "motion.hypothesis_steps": 2})
     run = tmp_path / "run"
     fit(tiny_sequence, run, cfg, torch.device("cpu"))
     rec = next(json.loads(l) for l in (run / "log.jsonl").read_text().splitlines() if '"hypotheses"' in l)
@@ -477,49 +435,35 @@ def test_hypotheses_are_scored_on_every_frame(tiny_sequence, tmp_path, monkeypat
         assert terms[k] == pytest.approx(want, rel=1e-6)
 
 
-def test_hypothesis_window_fits_and_scores_only_frames_near_the_canonical_one(tiny_sequence, tmp_path, monkeypatch):
-    """motion.hypothesis_window=w: every training window and the score's windows lie in [c - w, c + w], and the
-    score covers all of it; a negative window is refused."""
-    cfg = _cfg(**{"coarse.steps": 2, "motion.batch_frames": 3, "motion.hypotheses": 3, "motion.hypothesis_steps": 3,
-                  "motion.hypothesis_refine": 0, "motion.hypothesis_window": 1})
+def test_hypotheses_are_ranked_by_their_flow_term_or_else_the_whole_loss(tiny_sequence, tmp_path, monkeypatch):
+    """The optical-flow term over every frame ranks the hypotheses; a sequence without a flow term (faked here)
+    ranks them by the sum of its terms."""
+    import s3o_warp.fit as F
+
+    monkeypatch.setattr(F, "HYPOTHESIS_REFINE", 0)
+    cfg = _cfg(**{"coarse.steps": 2, "motion.hypotheses": 3, "motion.hypothesis_steps": 1})
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
-    coarse = coarse_model(data, cfg)
-    f = Fitter(data, coarse, cfg, tmp_path, torch.device("cpu"))
-    seen, orig = [], Fitter.motion_losses
-
-    def record(self, frames):
-        seen.append(frames.tolist())
-        return orig(self, frames)
-
-    monkeypatch.setattr(Fitter, "motion_losses", record)
-    f.select_hypothesis()
-    T, c = data.num_frames, coarse.canonical
-    near = set(range(max(0, c - 1), min(T, c + 2)))
-    assert len(near) < T  # the tiny sequence has frames outside the window
-    assert {t for w in seen for t in w} == near
-    with pytest.raises(ConfigError, match="motion.hypothesis_window"):
-        Fitter(data, coarse, _cfg(**{"motion.hypothesis_window": -1}), tmp_path, torch.device("cpu"))
+    f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
+    scored = iter([{"flow": 0.3, "sil": 0.0}, {"flow": 0.1, "sil": 5.0}, {"flow": 0.2, "sil": 0.0},
+                   {"sil": 0.3, "smooth": 0.1}, {"sil": 0.1, "smooth": 0.4}, {"sil": 0.2, "smooth": 0.0}])
+    monkeypatch.setattr(Fitter, "mean_terms", lambda self: next(scored))
+    assert f.select_hypothesis() == 0.0  # rates -3, 0, 3: the lowest flow term, not the lowest total
+    assert f.select_hypothesis() == 3.0  # no flow term: the lowest total
 
 
-def test_temporal_smoothness_orders():
+def test_temporal_smoothness_is_the_mean_squared_first_difference():
     from s3o_warp import losses as L
 
     t = torch.arange(6, dtype=torch.float64)
     line = torch.stack([2 * t, -t], 1)  # constant velocity
-    assert float(L.temporal_smoothness(line, 1)) == pytest.approx((4 + 1) / 2)
-    assert float(L.temporal_smoothness(line, 2)) == 0.0  # no acceleration
-    par = t**2
-    assert float(L.temporal_smoothness(par, 2)) == pytest.approx(4.0)  # second difference 2 everywhere
-    assert float(L.temporal_smoothness(par[:2], 2)) == 0.0
-    with pytest.raises(ValueError, match="order"):
-        L.temporal_smoothness(par, 3)
+    assert float(L.temporal_smoothness(line)) == pytest.approx((4 + 1) / 2)
+    assert float(L.temporal_smoothness(t[:1])) == 0.0
 
 
-@pytest.mark.parametrize("root_order, zero", [(None, False), (1, False), (2, True)])
-def test_root_smooth_order_lets_a_constant_extra_turn_through(tiny_sequence, tmp_path, root_order, zero):
-    """The root's rotation is an offset from the hypothesis' constant turn: at root order 2 a constant extra rate
-    costs nothing in the smoothness term (the bones still at order 1); at order 1 (the default's) it does."""
-    cfg = _cfg(**{"coarse.steps": 2, **({"motion.root_smooth_order": root_order} if root_order else {})})
+def test_a_constant_extra_turn_of_the_root_costs_its_rate_squared(tiny_sequence, tmp_path):
+    """The root's rotation is an offset from the hypothesis' constant turn: the motion smoothness term (on first
+    differences) holds the turn rate at the hypothesis'."""
+    cfg = _cfg(**{"coarse.steps": 2})
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
     m = f.model
@@ -529,15 +473,11 @@ def test_root_smooth_order_lets_a_constant_extra_turn_through(tiny_sequence, tmp
             p.zero_()
         m.root_aa[:, 1] = 0.01 * torch.arange(T, dtype=torch.float32)  # 0.57 degrees per frame more turn
     terms, _, _ = f.motion_losses(torch.arange(0, 3))
-    smooth = float(terms["smooth"][1])
-    assert (smooth == pytest.approx(0.0, abs=1e-12)) if zero else smooth == pytest.approx(0.01**2 / 3, rel=1e-4)
-    with pytest.raises(ConfigError, match="root_smooth_order"):
-        Fitter(data, coarse_model(data, cfg), _cfg(**{"motion.root_smooth_order": 3}), tmp_path, torch.device("cpu"))
+    assert float(terms["smooth"][1]) == pytest.approx(0.01**2 / 3, rel=1e-4)
 
 
-@pytest.mark.parametrize("a", [0.0, 1.0])
-def test_sweep_seeds_new_frames_at_constant_velocity(tiny_sequence, tmp_path, a):
-    cfg = _cfg(**{"coarse.steps": 2, "motion.sweep_extrapolate": a})
+def test_sweep_seeds_new_frames_from_the_nearest_visited_one(tiny_sequence, tmp_path):
+    cfg = _cfg(**{"coarse.steps": 2})
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
     m = f.model
@@ -551,22 +491,19 @@ def test_sweep_seeds_new_frames_at_constant_velocity(tiny_sequence, tmp_path, a)
             p.data[3] = torch.randn(p.shape[1:], generator=g)
     f._seed_unvisited(torch.arange(2, 7))  # 4, 5, 6 are new, 3 their nearest visited frame, 2 inward of it
     for p in params:
-        v = p.data[3] - p.data[2]
-        for k, fr in enumerate((4, 5, 6), 1):
-            torch.testing.assert_close(p.data[fr], p.data[3] + a * k * v)
+        assert not torch.equal(p.data[2], p.data[3])
+        for fr in (4, 5, 6):
+            torch.testing.assert_close(p.data[fr], p.data[3], rtol=0, atol=0)
     assert m.visited[2:7].all()
-    with pytest.raises(ConfigError, match="smooth_order"):
-        Fitter(data, coarse_model(data, cfg), make_config("smoke", overrides=["motion.smooth_order=3"]), tmp_path,
-               torch.device("cpu"))
 
 
 @pytest.mark.parametrize("stride", [0, 1, 3])
 def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
-    cfg = _cfg(**{"coarse.steps": 2, "motion.batch_frames": 4, "motion.sweep_stride": stride})
+    cfg = _cfg(**{"coarse.steps": 2, "motion.batch_frames": 4})
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
     T, n, c = data.num_frames, 4, f.coarse.canonical
-    starts = f.sweep_starts()
+    starts = f.sweep_starts(stride)
     s0 = min(max(c - n // 2, 0), T - n)
     assert starts[0] == s0 and 0 in starts and T - n in starts and len(set(starts)) == len(starts)
     step = stride or n // 2
@@ -580,10 +517,7 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
 
 @pytest.mark.parametrize("bad, names", [
     ("skeleton.merge_quantile=1", "merge_quantile"),
-    ("motion.sweep_stride=-1", "sweep_stride"),
     ("skeleton.min_frames_fraction=1.5", "min_frames_fraction"),
-    ("motion.polish_steps=-1", "motion.polish_steps"),
-    ("motion.polish_lr_factor=0", "motion.polish_lr_factor"),
     ("skeleton.motion_frame=image", "motion_frame"),
     ("skeleton.still_flow=0", "still_flow"),
     ("skeleton.min_section_vertices=0", "min_section_vertices"),
@@ -678,10 +612,9 @@ def test_streamed_frames_give_the_same_fit_as_resident_ones(tiny_sequence, tmp_p
         torch.testing.assert_close(pb[k], pa[k], rtol=0, atol=0, msg=k)
 
 
-@pytest.mark.parametrize("freeze", [True, False])
-def test_coarse_fit_keeps_the_lifted_depth(tiny_sequence, tmp_path, freeze):
-    """One view says nothing about depth: the coarse fit moves vertices in its image plane only (by default)."""
-    cfg = _cfg(**{"coarse.steps": 15, "coarse.freeze_depth": freeze, "motion.warmup_steps": 0, "motion.steps": 0})
+def test_coarse_fit_keeps_the_lifted_depth(tiny_sequence, tmp_path):
+    """One view says nothing about depth: the coarse fit moves vertices in its image plane only."""
+    cfg = _cfg(**{"coarse.steps": 15, "motion.warmup_steps": 0, "motion.steps": 0})
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
     v0 = f.model.verts.detach().clone()
@@ -689,7 +622,7 @@ def test_coarse_fit_keeps_the_lifted_depth(tiny_sequence, tmp_path, freeze):
     v1 = f.model.verts.detach()
     assert (v1[:, :2] - v0[:, :2]).abs().max() > 1e-3  # the silhouette moved them
     dz = float((v1[:, 2] - v0[:, 2]).abs().max())
-    assert (dz == 0.0) if freeze else (dz > 1e-3), dz
+    assert dz == 0.0, dz
     # the relative Laplacian is zero at its reference shape and grows with a bumpy change
     from s3o_warp.kernels.regularisers import laplacian_loss
 
@@ -729,37 +662,6 @@ def _assert_no_jump(before, after, loss0, loss1):
     diag = float((before.amax((0, 1)) - before.amin((0, 1))).norm())
     assert float((after - before).norm(dim=-1).mean()) < 0.01 * diag
     assert abs(loss1 - loss0) < 0.05 * loss0, (loss0, loss1)
-
-
-def test_bone_centres_step_by_their_size(tiny_sequence, tmp_path):
-    """motion.bone_step_radius scales each centre's step by min(1, r_b / radius) and leaves every other step alone."""
-    cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
-    saved = copy.deepcopy((f.model.state_dict(), f.opt.state_dict()))
-    gen = f.gen.get_state()  # the coverage term samples pixels
-
-    def one_step(radius):
-        f.model.load_state_dict(saved[0])
-        f.opt.load_state_dict(copy.deepcopy(saved[1]))  # Adam updates the loaded tensors in place
-        f.gen.set_state(gen)
-        f.cfg.motion.bone_step_radius = radius
-        before = {k: v.detach().clone() for k, v in f.model.named_parameters()}
-        f.opt.zero_grad()
-        terms, _, _ = f.motion_losses(frames)
-        sum(w * v for w, v in terms.values()).backward()
-        f._step_window(frames)
-        return {k: v.detach() - before[k] for k, v in f.model.named_parameters()}
-
-    plain = one_step(0.0)
-    r = torch.exp(-0.5 * saved[0]["bone_log_scales"].max(dim=1).values)  # each bone's smallest radius
-    radius = float(r.median())
-    sized = one_step(radius)
-    scale = (r / radius).clamp(max=1.0)
-    assert (scale < 0.9).any() and (scale == 1).any()
-    assert plain["bone_centers"].abs().amax(1).min() > 0  # every centre moved
-    torch.testing.assert_close(sized["bone_centers"], plain["bone_centers"] * scale[:, None], rtol=1e-4, atol=1e-8)
-    for k in plain:
-        if k != "bone_centers":
-            torch.testing.assert_close(sized[k], plain[k], rtol=0, atol=0, msg=k)
 
 
 @pytest.mark.parametrize("epoch", [0, 2])  # 0: shift + growth, 2 (= e1): upsampling
@@ -1163,18 +1065,23 @@ def test_cli_fits_a_video_file_with_a_mask_folder(tiny_sequence, tmp_path):
     assert (run / "renders" / "overlay.mp4").is_file() or (run / "renders" / "overlay.gif").is_file()
 
 
-def test_coverage_term_follows_its_weights_and_pulls_the_bones(tiny_sequence, tmp_path):
-    """motion.w_cover adds the coverage term (its own warm-up weight wins there) and its gradient reaches the motion."""
+def test_coverage_term_follows_its_weight_and_pulls_the_bones(tiny_sequence, tmp_path, monkeypatch):
+    """motion.w_cover adds the coverage term in both phases (0: none) and its gradient reaches the motion."""
+    import s3o_warp.fit as F
     from s3o_warp import losses as L
     from s3o_warp.geometry import project
     from s3o_warp.kernels.raster import rasterize
 
-    cfg = _cfg(**{"coarse.steps": 2, "motion.w_cover": 0.5, "motion.w_cover_warmup": 0.0, "motion.cover_pixels": 0})
+    monkeypatch.setattr(F, "COVER_PIXELS", 0)  # every uncovered pixel: the term is compared exactly below
+    cfg = _cfg(**{"coarse.steps": 2, "motion.w_cover": 0.5})
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
     frames = torch.arange(0, 3)
     f.phase = "warmup"
+    assert f.motion_losses(frames)[0]["cover"][0] == 0.5
+    f.cfg.motion.w_cover = 0.0
     assert "cover" not in f.motion_losses(frames)[0]
+    f.cfg.motion.w_cover = 0.5
     f.phase = "joint"
     terms = f.motion_losses(frames)[0]
     w, v = terms["cover"]
@@ -1281,33 +1188,3 @@ def test_canonical_frame_setting_picks_the_lifted_frame(tiny_sequence, tmp_path)
     assert res.canonical == forced != auto
     with pytest.raises(ConfigError, match="coarse.canonical_frame=8"):
         coarse_model(data, smoke_config(**{"coarse.canonical_frame": data.num_frames}))
-
-
-def test_bone_turn_loss_against_a_dense_twin(tiny_sequence, tmp_path):
-    """The bones' mass-weighted mean rotation, squared, averaged over the frames (loops as the twin); zero when
-    the bones only articulate about a still mean; float64 gradcheck; in the fit's terms only when weighted."""
-    from s3o_warp import losses as L
-
-    g = torch.Generator().manual_seed(1)
-    t, B, N = 3, 4, 10
-    aa = (0.3 * torch.randn(t, B, 3, generator=g)).double().requires_grad_()
-    W = torch.softmax(torch.randn(N, B, generator=g), 1).double()
-
-    def twin(aa):
-        total = 0.0
-        for f in range(t):
-            mean = sum(W[:, b].sum() / W.sum() * aa[f, b] for b in range(B))
-            total = total + (mean**2).sum()
-        return total / t
-
-    assert float(L.bone_turn_loss(aa, W)) == pytest.approx(float(twin(aa)), rel=1e-12)
-    assert torch.autograd.gradcheck(lambda a: L.bone_turn_loss(a, W), (aa,))
-    mass = W.sum(0) / W.sum()
-    still = aa.detach() - torch.einsum("b,tbi->ti", mass, aa.detach())[:, None] / mass.sum()
-    assert float(L.bone_turn_loss(still, W)) < 1e-20 and float(L.bone_turn_loss(aa, W)) > 1e-3
-
-    cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
-    assert "bone_turn" not in f.motion_losses(frames)[0]
-    cfg.motion.w_bone_turn = 2.0
-    w, v = f.motion_losses(frames)[0]["bone_turn"]
-    assert w == 2.0 and float(v) == pytest.approx(float(L.bone_turn_loss(f.model.bone_aa[frames], f.model.skinning())))
