@@ -320,14 +320,6 @@ class SkeletonConfig:
     after the last M-step, or a split left them none) are merged into their parent before the joints are
     placed, as the M-step does after each merge (min_bone_length). Such a bone moves nothing, and its joints
     fall back to far-apart borders (a leg's top joint at the tail's base). false = export them as they are."""
-    mirror: bool = False
-    """Not in the paper: a bone and its mirror partner across the lift's symmetry plane get the same refinement
-    decisions (merge, short-bone pruning, joint creation), taken by whichever of the two is seen moving in more
-    frames. A far-side leg is seen less than its partner, so on its own it keeps or loses joints by what little
-    the camera saw of it. false = each bone decides on its own (the paper)."""
-    mirror_tol: float = 0.05
-    """Bones are mirror partners when one's part centroid reflected lies within this fraction of the canonical
-    mesh's bbox diagonal of the other's (mutual nearest, opposite sides of the plane)."""
     centre_joints: bool = True
     """Then move each joint into the body: to the middle of a thin limb's cross-section, at most joint_depth
     below the surface of a thick part (the mean above sits on the surface when the shared vertices are on

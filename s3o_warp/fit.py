@@ -343,9 +343,6 @@ class Fitter:
                               f"{cfg.motion.crossing_max_gap}")
         if cfg.motion.crossing_space not in ("object", "image"):
             raise ConfigError(f"motion.crossing_space must be 'object' or 'image', got {cfg.motion.crossing_space!r}")
-        if not 0 <= cfg.skeleton.mirror_tol < 0.5:
-            raise ConfigError(f"skeleton.mirror_tol must be in [0, 0.5) (a fraction of the object's size), "
-                              f"got {cfg.skeleton.mirror_tol}")
         if not 0 <= cfg.skeleton.min_bone_length < 0.5:
             raise ConfigError(f"skeleton.min_bone_length must be in [0, 0.5) (a fraction of the object's size; 0 = off), "
                               f"got {cfg.skeleton.min_bone_length}")
@@ -1024,7 +1021,7 @@ class Fitter:
         from s3o_warp.mstep import m_step
 
         epoch = self.step // self.steps_per_epoch(n) - 1
-        if m_step(self.model, self.opt, self.data, self.cfg, self.skel, epoch, sym_plane=self.sym_plane):
+        if m_step(self.model, self.opt, self.data, self.cfg, self.skel, epoch):
             self._good = None  # shapes changed: the NaN roll-back target is taken anew
         every = self.cfg.motion.resample_epochs
         if every > 0 and (epoch + 1) % every == 0:

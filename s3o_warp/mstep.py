@@ -16,14 +16,6 @@ articulated motion, the flow less what the root's rigid motion and the camera gi
 two bones that both stay with the body, under ``skeleton.still_flow``, move together). Each merge step logs the
 similarity of every bone to its parent, the numbers t_o is compared with.
 
-With ``skeleton.mirror`` (not in the paper) the refinement takes the same decisions for a bone and its mirror
-partner across the lift's symmetry plane (:func:`s3o_warp.skeleton.mirror_partners`), from whichever of the
-two is seen moving in more frames: a pair's motion similarity, a bone's length for the pruning and whether
-it gets a joint. A far-side leg is seen in fewer frames than its partner: its similarity to a neighbour is a
-minimum over fewer frames (or, seen in fewer than ``min_frames`` or ``min_frames_fraction`` of the frame
-pairs, never allows a merge), so on its own it
-keeps or loses joints by what little of it the camera saw.
-
 After every edit the joints (bone pairs of the kinematic tree) are re-derived and placed at the mean of
 the vertices both bones weigh >= t_r. Per-frame motion and optimiser state are carried over by
 ``skeleton.apply_edit`` so the loss does not jump.
@@ -117,15 +109,13 @@ def prune_empty_bones(model, opt, state: SkeletonState, sc, epoch: int = -1) -> 
     return _apply(model, opt, state, _prune_edit(model, state, sc, 0.0), "prune empty (end)", epoch, sc)
 
 
-def _prune_edit(model, state: SkeletonState, sc, min_length: float, mirror=None):
+def _prune_edit(model, state: SkeletonState, sc, min_length: float):
     """:func:`s3o_warp.skeleton.prune_short_bones` on the model's canonical bone lengths; ``min_length`` a fraction
-    of the mesh's size; ``mirror`` (partners, seen) takes each length from the better-seen of a bone and its partner."""
+    of the mesh's size."""
     X, W = _xw(model)
     C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
     L = sk.bone_lengths(sk.bone_endpoints(X, W, state.joints, t_r=sc.t_r, far_fraction=sc.far_fraction,
                                           samples=joint_samples(model, sc)), X)
-    if mirror is not None:
-        L = _from_mirror(L, mirror[1], mirror[0], "lengths")
     return sk.prune_short_bones(L, min_length * sk.size_of(X), W, C, Q, state.parents, extents=state.extents)
 
 
@@ -269,46 +259,8 @@ def end_bone_bending(model, data, state: SkeletonState, E: np.ndarray, cfg) -> n
     return out
 
 
-def _mirror(model, cfg, sym_plane, seen: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """The bones' mirror partners ``m`` (:func:`s3o_warp.skeleton.mirror_partners` of the parts' centroids)
-    and ``seen``, the frames each bone is seen moving; None when mirroring is off."""
-    sc = cfg.skeleton
-    if sym_plane is None or not sc.mirror:
-        return None
-    X, W = _xw(model)
-    C = model.bone_centers.detach().cpu().double().numpy()
-    # the parts' centroids (eq. 5), not the free centres: those drift off their parts after the shifting ends
-    m = sk.mirror_partners(sk.shift_bones(X, W, C), sym_plane, sc.mirror_tol * sk.size_of(X))
-    paired = np.flatnonzero(m > np.arange(len(m)))
-    log.info("M-step: %d mirrored bone pairs of %d bones: %s", len(paired), len(m),
-             [(int(b), int(m[b])) for b in paired])
-    return m, seen
-
-
-def _seen_after(mirror, edit) -> np.ndarray | None:
-    """The frames each bone of an applied edit is seen moving: the best-seen of the old bones it came from
-    (no second pass over the flow)."""
-    if mirror is None:
-        return None
-    return np.array([max(mirror[1][i] for i, _w in src) for src in edit.sources], dtype=mirror[1].dtype)
-
-
-def _from_mirror(own: np.ndarray, seen: np.ndarray, m: np.ndarray, what: str) -> np.ndarray:
-    """Per bone: its mirror partner's value where the partner is seen in more frames, its own otherwise."""
-    take = seen[m] > seen
-    differ = np.flatnonzero(take & (own[m] != own))
-    if len(differ):
-        log.info("M-step: %s of bones %s taken from their better-seen mirror partners %s", what, differ.tolist(),
-                 m[differ].tolist())
-    return np.where(take, own[m], own)
-
-
-def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int, sym_plane=None) -> bool:
-    """One M-step after epoch ``epoch`` of the joint phase; returns whether the skeleton changed.
-
-    ``sym_plane``: the lift's symmetry plane ``(normal, offset)`` in the object frame; with
-    ``skeleton.mirror`` the refinement decides for a bone and its mirror partner together (module docstring).
-    """
+def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int) -> bool:
+    """One M-step after epoch ``epoch`` of the joint phase; returns whether the skeleton changed."""
     sc = cfg.skeleton
     if sc.method != "s3o":
         return False
@@ -360,23 +312,11 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int, sym_plane=No
             log.info("M-step epoch %d: motion similarity of the %d parent-child pairs: %s (%d finite), %d above t_o %.3g",
                      epoch, len(kid), " ".join(f"{x:.3f}" for x in np.sort(fin)[::-1]), len(fin),
                      int((fin > sc.t_o).sum()), sc.t_o)
-        mirror = _mirror(model, cfg, sym_plane, np.diag(N).copy())
-        if mirror is not None:  # a pair's similarity from the better-seen of it and its mirror image
-            m = mirror[0]
-            Nm = N[np.ix_(m, m)]
-            flip = np.flatnonzero(((Nm > N) & ((S[np.ix_(m, m)] > sc.t_o) != (S > sc.t_o))).any(1))
-            if len(flip):
-                log.info("M-step: merges of bones %s decided by their better-seen mirror partners", flip.tolist())
-            S = np.where(Nm > N, S[np.ix_(m, m)], S)
         edit = sk.merge_bones(S, W, C, Q, state.parents, t_o=sc.t_o, mode=sc.merge_mode,
-                              temperature=sc.merge_temperature, extents=state.extents,
-                              partners=None if mirror is None else mirror[0])
-        if _apply(model, opt, state, edit, "merge", epoch, sc):
-            changed, mirror = True, _mirror(model, cfg, sym_plane, _seen_after(mirror, edit))
+                              temperature=sc.merge_temperature, extents=state.extents)
+        changed |= _apply(model, opt, state, edit, "merge", epoch, sc)
         if sc.min_bone_length > 0 and len(state.joints):
-            edit = _prune_edit(model, state, sc, sc.min_bone_length, mirror)
-            if _apply(model, opt, state, edit, "prune", epoch, sc):
-                changed, mirror = True, _mirror(model, cfg, sym_plane, _seen_after(mirror, edit))
+            changed |= _apply(model, opt, state, _prune_edit(model, state, sc, sc.min_bone_length), "prune", epoch, sc)
         if len(state.joints):
             split, E = bone_length_variation(model, data, state, cfg)
             if sc.split_end_bones or sc.split_inner_bones:  # not in the paper: a knee inside a bone (end_bone_bending)
@@ -385,8 +325,6 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int, sym_plane=No
                     log.info("M-step epoch %d: bones %s bend inside (unexplained motion > t_u %.3g)", epoch,
                              np.flatnonzero(bend).tolist(), sc.t_u)
                 split = split | bend
-            if mirror is not None:
-                split = _from_mirror(split, mirror[1], mirror[0], "joint creation")
             if split.any() and model.num_bones + int(split.sum()) <= sc.max_bones:
                 X, W = _xw(model)
                 C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)

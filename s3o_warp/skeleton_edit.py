@@ -641,7 +641,6 @@ def merge_bones(
     mode: Literal["greedy", "components"] = "greedy",
     temperature: float = 1.0,
     extents=None,
-    partners=None,
 ) -> SkeletonEdit:
     """Merge bones that move together (eqs. 8-9): ``min_f S(F_b', F_b'') > t_o`` for tree neighbours.
 
@@ -665,10 +664,6 @@ def merge_bones(
         mode: greedy pairs or connected components (see above).
         temperature: softmax temperature of the merge weights (1 = paper).
         extents: optional ``(B,)`` growth references; a merged bone gets the blend of its members'.
-        partners: optional ``(B,)`` mirror partners (:func:`mirror_partners`). Greedy mode then merges a
-            candidate pair and its mirror pair in the same call, when that is a candidate too: two mirrored
-            limbs hanging from one bone on the plane merge into it together, where the pairwise rule
-            would merge one side now and the other an M-step later.
 
     Returns:
         A :class:`SkeletonEdit` (merged bones take the index of their lowest member, others keep order).
@@ -699,26 +694,15 @@ def merge_bones(
             a = root[a]
         return a
 
-    M = None if partners is None else _np(partners, np.int64)
-    if M is not None:
-        _check(name, "partners", M, (B,))
-        is_cand = {(a, b) for _s, a, b in cand} | {(b, a) for _s, a, b in cand}
     used = np.zeros(B, bool)
     for _s, a, b in cand:
-        pairs = [(a, b)]
         if mode == "greedy":
             if used[a] or used[b]:
                 continue
-            if M is not None:
-                ma, mb = int(M[a]), int(M[b])
-                if {ma, mb} != {a, b} and (ma, mb) in is_cand and not any(used[i] for i in {ma, mb} - {a, b}):
-                    pairs.append((ma, mb))
-            for i, j in pairs:
-                used[i] = used[j] = True
-        for i, j in pairs:
-            ri, rj = find(i), find(j)
-            if ri != rj:
-                root[max(ri, rj)] = min(ri, rj)
+            used[a] = used[b] = True
+        ra, rb = find(a), find(b)
+        if ra != rb:
+            root[max(ra, rb)] = min(ra, rb)
     groups: dict[int, list[int]] = {}
     for b in range(B):
         groups.setdefault(find(b), []).append(b)
@@ -798,41 +782,6 @@ def prune_short_bones(lengths, min_length: float, weights, centers, precisions, 
     log.info("prune_short_bones: bones %s shorter than %.4g or empty", short, min_length)
     return merge_bones(S, weights, centers, precisions, P, t_o=0.5, mode="components", temperature=1.0,
                        extents=extents)
-
-
-def mirror_partners(centers, plane, tol: float) -> np.ndarray:
-    """Each bone's mirror image across the symmetry plane ``n . p = d``: ``(B,)`` int64, ``m[b]`` the bone whose
-    centre lies nearest to b's reflected centre, where that is mutual, within ``tol`` and on the other side of
-    the plane; ``m[b] = b`` otherwise (bones on the plane, bones without a partner).
-
-    Not in the paper. The M-step uses it to take the same decision for a limb and its mirror image
-    (:func:`s3o_warp.mstep.m_step`): a far-side leg is seen less and its flow-derived motion and lengths say
-    less, so on its own it loses joints its near-side partner keeps.
-
-    Args:
-        centers: ``(B, 3)`` one point per bone in the canonical object frame (the M-step passes the parts'
-            centroids, :func:`shift_bones`).
-        plane: ``(normal (3,), offset)``; the normal need not be unit length.
-        tol: largest distance between a reflected centre and its partner's centre (object units).
-    """
-    C = _np(centers)
-    _check("mirror_partners", "centers", C, (None, 3))
-    n = _np(plane[0]).reshape(3)
-    norm = float(np.linalg.norm(n))
-    if not norm > 0:
-        raise ValueError("mirror_partners(): the plane's normal must not be zero")
-    if tol < 0:
-        raise ValueError(f"mirror_partners(): tol must be >= 0, got {tol}")
-    n, d = n / norm, float(plane[1]) / norm
-    side = C @ n - d  # signed distances to the plane
-    R = C - 2.0 * side[:, None] * n  # reflected centres
-    D = np.linalg.norm(R[:, None, :] - C[None, :, :], axis=-1)  # D[b, j] = |refl(C_b) - C_j|
-    near = D.argmin(1)
-    m = np.arange(len(C), dtype=np.int64)
-    for b, j in enumerate(near):
-        if j != b and near[j] == b and D[b, j] <= tol and side[b] * side[j] < 0:
-            m[b] = j
-    return m
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -385,35 +385,6 @@ def test_merge_modes_and_log_space_weights_do_not_overflow():
     assert 0.1 < [wi for _, wi in soft.sources[0]][1] < 0.9
 
 
-def test_greedy_merge_takes_a_pair_and_its_mirror_pair_together():
-    """Body bone 0 on the plane, mirrored legs 1 | 2 hanging from it, each with a lower bone 3 | 4. Greedy merges
-    each bone once per call, so of the two legs moving with the body only one merges; with the partners both
-    do, and the lower bones (not candidates) stay."""
-    rng = np.random.default_rng(8)
-    labels = rng.choice(5, 500)
-    W = _hard_weights(labels, 5)
-    C = np.array([[0.0, 0, 0], [0, -1, 0.3], [0, -1, -0.3], [0, -2, 0.3], [0, -2, -0.3]])
-    Q = np.stack([np.eye(3)] * 5)
-    parents = np.array([-1, 0, 0, 1, 2])
-    Sim = np.full((5, 5), 0.5)
-    Sim[0, 1] = Sim[1, 0] = 0.99
-    Sim[0, 2] = Sim[2, 0] = 0.98
-    np.fill_diagonal(Sim, 1.0)
-    m = sk.mirror_partners(C, (np.array([0.0, 0, 1]), 0.0), tol=0.1)
-    assert m.tolist() == [0, 2, 1, 4, 3]
-    plain = sk.merge_bones(Sim, W, C, Q, parents, t_o=0.95)
-    both = sk.merge_bones(Sim, W, C, Q, parents, t_o=0.95, partners=m)
-    assert [[i for i, _ in src] for src in plain.sources] == [[0, 1], [2], [3], [4]]
-    assert [[i for i, _ in src] for src in both.sources] == [[0, 1, 2], [3], [4]]
-    assert both.parents.tolist() == [-1, 0, 0]
-    # the mirror pair is only taken along when it is a candidate itself
-    Sim[0, 2] = Sim[2, 0] = 0.9
-    assert [[i for i, _ in src] for src in sk.merge_bones(Sim, W, C, Q, parents, t_o=0.95, partners=m).sources] == \
-        [[0, 1], [2], [3], [4]]
-    with pytest.raises(ValueError, match="partners"):
-        sk.merge_bones(Sim, W, C, Q, parents, partners=m[:3])
-
-
 def _short_middle(n_long=100, n_short=5):
     """Bones 0 | 1 | 2 along x with hard weights: 0 on [0, 1), 1 (short, few vertices) on [1, 1.05), 2 on [1.05, 2]."""
     rng = np.random.default_rng(21)
@@ -480,28 +451,6 @@ def test_create_joints_leaves_no_half_shorter_than_min_length():
     assert sk.create_joints(L).tolist() == [False, True, False]  # the paper's relative test alone
     assert sk.create_joints(L, min_length=0.06).tolist() == [False, True, False]  # halves 0.0625 >= 0.06
     assert not sk.create_joints(L, min_length=0.07).any()  # halves would be 0.0625 < 0.07
-
-
-def test_mirror_partners_pairs_mutual_reflections_within_tol():
-    """Two legs mirrored across z = 0 pair up; a bone on the plane, a bone without a partner and a bone whose
-    nearest reflection is taken by a closer one map to themselves; any rigid motion of bones and plane
-    together gives the same pairs."""
-    C = np.array([[0.0, 0.3, 0.5],  # 0 <-> 1
-                  [0.04, 0.3, -0.5],
-                  [1.0, 0.0, 0.02],  # near the plane: its own reflection is nearest
-                  [2.0, 0.0, 0.4],  # nothing near its reflection
-                  [0.1, 0.3, -0.5]])  # its reflection's nearest is 0, which pairs with 1 (0.04 away)
-    plane = (np.array([0.0, 0.0, 2.0]), 0.0)  # unnormalised normal
-    assert sk.mirror_partners(C, plane, tol=0.1).tolist() == [1, 0, 2, 3, 4]
-    assert sk.mirror_partners(C, plane, tol=0.01).tolist() == [0, 1, 2, 3, 4]  # 0 and 1: 0.04 apart
-    R = axis_angle_to_matrix(torch.tensor([0.3, -1.1, 0.7], dtype=torch.float64)).numpy()
-    t = np.array([0.5, -2.0, 1.0])
-    n = R @ np.array([0.0, 0.0, 1.0])
-    assert sk.mirror_partners(C @ R.T + t, (3.0 * n, 3.0 * float(n @ t)), tol=0.1).tolist() == [1, 0, 2, 3, 4]
-    with pytest.raises(ValueError, match="normal"):
-        sk.mirror_partners(C, (np.zeros(3), 0.0), tol=0.1)
-    with pytest.raises(ValueError, match="tol"):
-        sk.mirror_partners(C, plane, tol=-1.0)
 
 
 # -------------------------------------------------------------------------------------------------
