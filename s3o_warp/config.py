@@ -349,26 +349,10 @@ class SkeletonConfig:
     """Bone flow: skip frames where a bone's visible weight mass (in vertices) is below this."""
     min_flow: float = 0.5
     """Motion similarity: frames where both bones move less than this (crop pixels) say nothing about direction."""
-    motion_frame: str = "crop"
-    """Which motion of the bones eq. 8 compares. crop: the flow between the two crops. frame: the motion in the
-    frame, in crop-t pixels; each crop box follows its own frame's mask, so the crop flow adds the boxes' shift
-    and zoom to every bone (on the 120-degree Fox at 192 px: a median 3.5 px shift and 1.9 px of zoom at the
-    crop's edge per frame, as large as a walking leg's motion). body: the articulated motion, the frame motion
-    less what the root's rigid motion and the camera give each vertex, and two bones that both stay with the
-    body (both under min_flow) count as moving together; a camera orbiting a rigid part moves its two ends in
-    different image directions, which crop and frame read as disagreement. Not in the paper (no crops, eq. 8
-    on the raw flow)."""
     merge_quantile: float = 0.0
     """Motion similarity over frames: this quantile of the per-frame cosines instead of their minimum (0 = the
     paper's "in every frame"; 0.1 = in 90 % of the frames, so flow noise on parts that barely move in the crop
     does not veto every merge)."""
-    still_flow: float = 0.01
-    """motion_frame=body: a bone whose articulated motion in a frame is under this fraction of the crop side
-    (1 px at 96 px crops) stays with the body in that frame, and two such bones move together (it replaces
-    min_flow there: the articulated motion of a part that does not articulate is the flow's and the fit's
-    error, about a pixel at 96 px, not zero). On the horse's fast fit 0.01 gives 15, 15 and 11 bones at t_o
-    0.99, 0.95 and 0.90; 0.02 gave 12, 11 and 10 with the body, neck, head and tail merged into one bone. On
-    the built-in quadruped's fast fit 0.01 still merges the body, neck and head (15 bones at every t_o)."""
     min_frames: int = 2
     """Motion similarity: bone pairs with fewer usable frames are never merged."""
     min_frames_fraction: float = 0.25

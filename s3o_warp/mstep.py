@@ -10,11 +10,8 @@ Called by the fit between epochs of the joint phase. For epoch e (0-based, ``e1`
   corrected) into two bones joined at a new joint, and (``skeleton.split_end_bones``, not in the paper) end
   bones whose two halves move in a way the one rigid bone does not reproduce (:func:`end_bone_bending`).
 
-The motion compared in eq. 8 is, by ``skeleton.motion_frame``: the flow between the two crops (``crop``, the
-default), the motion in the frame with the crop boxes' own shift and zoom taken out (``frame``), or the
-articulated motion, the flow less what the root's rigid motion and the camera give each vertex (``body``; then
-two bones that both stay with the body, under ``skeleton.still_flow``, move together). Each merge step logs the
-similarity of every bone to its parent, the numbers t_o is compared with.
+The motion compared in eq. 8 is the flow between the two crops. Each merge step logs the similarity of every
+bone to its parent, the numbers t_o is compared with.
 
 After every edit the joints (bone pairs of the kinematic tree) are re-derived and placed at the mean of
 the vertices both bones weigh >= t_r. Per-frame motion and optimiser state are carried over by
@@ -157,39 +154,20 @@ def bone_motion_similarity(model, data, cfg) -> tuple[np.ndarray, np.ndarray]:
     from s3o_warp.kernels.visibility import vertex_visibility
 
     sc = cfg.skeleton
-    if sc.motion_frame not in ("crop", "frame", "body"):
-        from s3o_warp.errors import ConfigError
-
-        raise ConfigError(f"skeleton.motion_frame must be 'crop', 'frame' or 'body', got {sc.motion_frame!r}")
-    from s3o_warp.geometry import project
-
     W = model.skinning()
     FB, valid = [], []
     for fr in _pair_windows(model, data.num_frames, cfg.motion.batch_frames):
         v = model(fr, weights=W)
         K = model.intrinsics_crop(fr)
         vis = vertex_visibility(v, model.faces)
-        M = rigid = None
-        if sc.motion_frame in ("frame", "body"):  # A_t^-1 A_{t+1}: crop t+1 into crop t (the boxes' jitter out)
-            A = data.crop_to_frame[fr].to(device=v.device, dtype=torch.float64)
-            M = torch.linalg.solve(A[:-1], A[1:])
-        if sc.motion_frame == "body":  # frame t's articulated pose carried by frame t+1's root and camera
-            RT = model.root_rt(fr)
-            R, tr = RT[:, :, :3], RT[:, None, :, 3]
-            obj = torch.einsum("tji,tnj->tni", R[:-1], v[:-1] - tr[:-1])  # the posed v back in the object frame
-            rigid = project(torch.einsum("tij,tnj->tni", R[1:], obj) + tr[1:], K[1:])
         fb, ok = sk.bone_flow(v, K, data.flow_fwd[fr[:-1]], vis, W, conf=data.conf_fwd[fr[:-1]],
-                              min_visible=sc.min_visible, min_mass=sc.min_mass, pair_transform=M,
-                              rigid_next=rigid)
+                              min_visible=sc.min_visible, min_mass=sc.min_mass)
         FB.append(fb)
         valid.append(ok)
     FB = torch.cat(FB, 0)
     valid = torch.cat(valid, 0)
-    body = sc.motion_frame == "body"
-    S, N = sk.motion_similarity(FB, valid, min_flow=sc.still_flow * data.crop_size if body else sc.min_flow,
-                                min_frames=sc.min_frames,
-                                quantile=sc.merge_quantile, return_frames=True,
-                                static_agree=body)
+    S, N = sk.motion_similarity(FB, valid, min_flow=sc.min_flow, min_frames=sc.min_frames,
+                                quantile=sc.merge_quantile, return_frames=True)
     return S.cpu().double().numpy(), N.cpu().numpy()
 
 

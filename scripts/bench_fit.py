@@ -118,7 +118,7 @@ def main(argv=None) -> int:
                          "refinement and the polish read (skeleton.t_o, merge_quantile, t_u, split_end_bones, t_d, min_bone_length, motion.polish_steps, polish_lr_factor) may differ from that run's")
     ap.add_argument("--figure-tag", default="",
                     help="with --t-o: name the repository's figure renders/skeleton_t_o-CASE-TAG-DEVICE.png, so a study "
-                         "with other settings (e.g. --set skeleton.motion_frame=body --figure-tag body) does not "
+                         "with other settings (e.g. --set skeleton.t_d=0.25 --figure-tag td25) does not "
                          "overwrite the sequence's figure")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")  # the fit's log (M-step edits) to stderr

@@ -591,8 +591,6 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
     ("motion.resample.max_lost=0.5", "set by motion.resample_max_lost"),
     ("motion.polish_steps=-1", "motion.polish_steps"),
     ("motion.polish_lr_factor=0", "motion.polish_lr_factor"),
-    ("skeleton.motion_frame=image", "motion_frame"),
-    ("skeleton.still_flow=0", "still_flow"),
     ("skeleton.min_section_vertices=0", "min_section_vertices"),
     ("skeleton.joint_samples=0", "joint_samples"),
     ("motion.refine_vertices=-1", "motion.refine_vertices"),
