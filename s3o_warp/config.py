@@ -349,10 +349,6 @@ class SkeletonConfig:
     """Bone flow: skip frames where a bone's visible weight mass (in vertices) is below this."""
     min_flow: float = 0.5
     """Motion similarity: frames where both bones move less than this (crop pixels) say nothing about direction."""
-    merge_quantile: float = 0.0
-    """Motion similarity over frames: this quantile of the per-frame cosines instead of their minimum (0 = the
-    paper's "in every frame"; 0.1 = in 90 % of the frames, so flow noise on parts that barely move in the crop
-    does not veto every merge)."""
     min_frames: int = 2
     """Motion similarity: bone pairs with fewer usable frames are never merged."""
     min_frames_fraction: float = 0.25

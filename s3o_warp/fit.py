@@ -34,7 +34,7 @@ log = logging.getLogger(__name__)
 CHECKPOINT_VERSION = 2
 BRANCH_CHECKPOINT = "branch.pt"  # in <run>/checkpoints: the state before the first M-step that reads t_o
 BRANCH_LOG = "branch.log.jsonl"
-BRANCH_MAY_DIFFER = ("skeleton.t_o", "skeleton.merge_quantile", "skeleton.t_u", "skeleton.split_end_bones",
+BRANCH_MAY_DIFFER = ("skeleton.t_o", "skeleton.t_u", "skeleton.split_end_bones",
                      "skeleton.t_d", "skeleton.min_bone_length", "skeleton.split_inner_bones", "motion.refine_vertices",
                      "motion.polish_steps", "motion.polish_lr_factor")
 """The settings a branched fit may change: the refinement and the polish after the joint phase read them only
@@ -335,8 +335,6 @@ class Fitter:
             raise ConfigError(f"motion.smooth_order must be 1 or 2, got {cfg.motion.smooth_order}")
         if cfg.motion.root_smooth_order not in (None, 1, 2):
             raise ConfigError(f"motion.root_smooth_order must be 1, 2 or unset, got {cfg.motion.root_smooth_order}")
-        if not 0.0 <= cfg.skeleton.merge_quantile < 1.0:
-            raise ConfigError(f"skeleton.merge_quantile must be in [0, 1) (0 = every frame), got {cfg.skeleton.merge_quantile}")
         if cfg.motion.crossing_window < 1 or cfg.motion.crossing_ratio <= 0 or cfg.motion.crossing_max_gap < 0:
             raise ConfigError("motion.crossing_window must be >= 1, motion.crossing_ratio > 0 and motion.crossing_max_gap "
                               f">= 0; got {cfg.motion.crossing_window}, {cfg.motion.crossing_ratio}, "
@@ -1233,7 +1231,7 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
     ``sequence_dir`` is a sequence folder, a DAVIS root (with ``name``), a DAVIS sequence folder, or a
     video file / frame folder with a separate ``masks`` folder (see ``s3o_warp.video.open_sequence``).
     ``branch_from``: a finished or running fit of the same sequence whose settings differ from ``cfg`` only in
-    ``skeleton.t_o``, ``merge_quantile``, ``t_u``, ``split_end_bones``, ``split_inner_bones``, ``t_d``, ``min_bone_length``, ``motion.refine_vertices`` or ``motion.polish_*`` (:data:`BRANCH_MAY_DIFFER`: read only from the branch on); the fit starts from its ``checkpoints/branch.pt`` (the state just
+    ``skeleton.t_o``, ``t_u``, ``split_end_bones``, ``split_inner_bones``, ``t_d``, ``min_bone_length``, ``motion.refine_vertices`` or ``motion.polish_*`` (:data:`BRANCH_MAY_DIFFER`: read only from the branch on); the fit starts from its ``checkpoints/branch.pt`` (the state just
     before the first merge) and its cached flow, so a t_o study pays for the shared part once (the rest of the run directory is this fit's own). With
     ``resume`` a checkpoint of ``out_dir`` itself comes first.
     """

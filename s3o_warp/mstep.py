@@ -166,8 +166,7 @@ def bone_motion_similarity(model, data, cfg) -> tuple[np.ndarray, np.ndarray]:
         valid.append(ok)
     FB = torch.cat(FB, 0)
     valid = torch.cat(valid, 0)
-    S, N = sk.motion_similarity(FB, valid, min_flow=sc.min_flow, min_frames=sc.min_frames,
-                                quantile=sc.merge_quantile, return_frames=True)
+    S, N = sk.motion_similarity(FB, valid, min_flow=sc.min_flow, min_frames=sc.min_frames, return_frames=True)
     return S.cpu().double().numpy(), N.cpu().numpy()
 
 

@@ -168,7 +168,7 @@ def bone_flow(
 
 
 def motion_similarity(F_B: torch.Tensor, valid: torch.Tensor, min_flow: float = 0.5,
-                      min_frames: int = 2, quantile: float = 0.0, return_frames: bool = False):
+                      min_frames: int = 2, return_frames: bool = False):
     """Motion similarity of every bone pair, eq. 8: ``min_f S(F_b^f, F_b'^f)`` over frames both see.
 
     ``S`` is the cosine similarity, made safe for static frames: with ``m = min_flow`` (pixels),
@@ -176,16 +176,13 @@ def motion_similarity(F_B: torch.Tensor, valid: torch.Tensor, min_flow: float = 
     longer than m; a frame where BOTH are shorter than m says nothing about direction and is skipped;
     where only one is short, S_m shrinks smoothly towards 0 (one part moves, the other does not:
     not moving together). Pairs with fewer than ``min_frames`` usable frames get ``-inf`` (never
-    merged). The diagonal is 1. ``quantile`` > 0 replaces the minimum over frames by that quantile of the
-    frames' similarities (linear interpolation): 0.1 = "agree in 90 % of the frames", so a few frames of
-    flow noise on parts that move a pixel or less in the crop do not veto a merge (0 = the paper's min).
+    merged). The diagonal is 1.
 
     Args:
         F_B: ``(T-1, B, 2)`` bone flow (:func:`bone_flow`), pixels.
         valid: ``(T-1, B)`` bool.
         min_flow: m, the magnitude (pixels) below which a bone counts as static in a frame.
         min_frames: fewest common usable frames for a finite similarity.
-        quantile: q in [0, 1) of the usable frames' similarities (0 = min, eq. 8).
         return_frames: also return how many usable frames each pair has.
 
     Returns:
@@ -196,8 +193,6 @@ def motion_similarity(F_B: torch.Tensor, valid: torch.Tensor, min_flow: float = 
         raise ValueError(f"motion_similarity(): F_B must have shape (T-1, B, 2), got {tuple(F_B.shape)}")
     if tuple(valid.shape) != tuple(F_B.shape[:2]):
         raise ValueError(f"motion_similarity(): valid must have shape {tuple(F_B.shape[:2])}, got {tuple(valid.shape)}")
-    if not 0.0 <= float(quantile) < 1.0:
-        raise ValueError(f"motion_similarity(): quantile must be in [0, 1), got {quantile}")
     min_flow = max(float(min_flow), 1e-9)
     with torch.no_grad():
         F = F_B.float()
@@ -206,10 +201,7 @@ def motion_similarity(F_B: torch.Tensor, valid: torch.Tensor, min_flow: float = 
         S = torch.einsum("tbc,tdc->tbd", F, F) / (den[:, :, None] * den[:, None, :])
         moving = mag >= min_flow
         use = valid[:, :, None] & valid[:, None, :] & (moving[:, :, None] | moving[:, None, :])
-        if quantile > 0:
-            out = torch.nanquantile(torch.where(use, S, torch.full_like(S, float("nan"))), float(quantile), dim=0)
-        else:
-            out = torch.where(use, S, torch.full_like(S, float("inf"))).min(0).values
+        out = torch.where(use, S, torch.full_like(S, float("inf"))).min(0).values
         out = torch.where(use.sum(0) >= min_frames, out, torch.full_like(out, float("-inf")))
         out.fill_diagonal_(1.0)
     return (out, use.sum(0)) if return_frames else out

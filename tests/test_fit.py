@@ -308,9 +308,9 @@ def test_a_fit_branched_at_another_t_o_ends_where_a_fresh_fit_at_it_ends(tiny_se
     secs = [r["seconds"] for r in rows]
     assert secs == sorted(secs)
     assert json.loads((c / "skeleton.json").read_text())["bones"] == json.loads((b / "skeleton.json").read_text())["bones"]
-    # merge_quantile, joint creation's t_d, the short-bone limit, the refinement's mesh and the polish are read only
-    # after the branch too
-    other = {**over, "skeleton.t_o": 0.5, "skeleton.merge_quantile": 0.5, "skeleton.t_d": 0.05,
+    # joint creation's t_d, the short-bone limit, the refinement's mesh and the polish are read only after the branch
+    # too
+    other = {**over, "skeleton.t_o": 0.5, "skeleton.t_d": 0.05,
              "skeleton.min_bone_length": 0.03, "motion.polish_steps": 3, "motion.refine_vertices": 2000}
     fit(tiny_sequence, tmp_path / "d", _cfg(**other), torch.device("cpu"))
     fit(tiny_sequence, tmp_path / "e", _cfg(**other), torch.device("cpu"), branch_from=a)
@@ -326,7 +326,7 @@ def test_a_branch_refuses_other_settings_and_a_run_without_its_checkpoint(tiny_s
     over = {"coarse.steps": 2, "motion.warmup_steps": 2, "motion.steps": 8, "skeleton.epochs": 4, "skeleton.e1": 1}
     a = tmp_path / "a"
     fit(tiny_sequence, a, _cfg(**over), torch.device("cpu"))
-    with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o, skeleton.merge_quantile, skeleton.t_u, skeleton.split_end_bones, skeleton.t_d, skeleton.min_bone_length, skeleton.split_inner_bones, motion.refine_vertices, motion.polish_steps, motion.polish_lr_factor may differ"):
+    with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o, skeleton.t_u, skeleton.split_end_bones, skeleton.t_d, skeleton.min_bone_length, skeleton.split_inner_bones, motion.refine_vertices, motion.polish_steps, motion.polish_lr_factor may differ"):
         fit(tiny_sequence, tmp_path / "b", _cfg(**over, **{"motion.lr_bones": 0.123}), torch.device("cpu"), branch_from=a)
     assert not (tmp_path / "b").exists()  # refused before any work
     # a run from before a setting existed ran with its default: that setting does not count as a difference
@@ -580,7 +580,6 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
 
 
 @pytest.mark.parametrize("bad, names", [
-    ("skeleton.merge_quantile=1", "merge_quantile"),
     ("motion.sweep_stride=-1", "sweep_stride"),
     ("skeleton.min_frames_fraction=1.5", "min_frames_fraction"),
     ("motion.resample_method=manifold", "motion.resample_method"),
