@@ -339,8 +339,6 @@ class SkeletonConfig:
     min_section_vertices: int = 4
     """Growth, upsampling and joint creation split a bone only when each new bone would own at least this many
     vertices (its part: the vertices it weighs most)."""
-    merge_mode: str = "greedy"
-    """greedy (each bone merges at most once per M-step) or components (all agreeing neighbours at once)."""
     merge_temperature: float = 1.0
     """Temperature of the log-space softmax of the merge weights (sum of skinning weights per bone)."""
     min_visible: float = 0.1

@@ -289,8 +289,8 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int) -> bool:
             log.info("M-step epoch %d: motion similarity of the %d parent-child pairs: %s (%d finite), %d above t_o %.3g",
                      epoch, len(kid), " ".join(f"{x:.3f}" for x in np.sort(fin)[::-1]), len(fin),
                      int((fin > sc.t_o).sum()), sc.t_o)
-        edit = sk.merge_bones(S, W, C, Q, state.parents, t_o=sc.t_o, mode=sc.merge_mode,
-                              temperature=sc.merge_temperature, extents=state.extents)
+        edit = sk.merge_bones(S, W, C, Q, state.parents, t_o=sc.t_o, temperature=sc.merge_temperature,
+                              extents=state.extents)
         changed |= _apply(model, opt, state, edit, "merge", epoch, sc)
         if sc.min_bone_length > 0 and len(state.joints):
             changed |= _apply(model, opt, state, _prune_edit(model, state, sc, sc.min_bone_length), "prune", epoch, sc)

@@ -638,16 +638,14 @@ def merge_bones(
     precisions,
     parents,
     t_o: float = 0.95,
-    mode: Literal["greedy", "components"] = "greedy",
     temperature: float = 1.0,
     extents=None,
 ) -> SkeletonEdit:
     """Merge bones that move together (eqs. 8-9): ``min_f S(F_b', F_b'') > t_o`` for tree neighbours.
 
     Only bones adjacent in the kinematic tree (parent and child) are candidates, so a merge keeps a
-    tree. ``mode="greedy"``: candidate pairs in decreasing similarity, each bone merged at most once
-    per call (the paper's pairwise rule; repeated M-steps merge longer chains). ``"components"``:
-    every connected component of the candidate graph becomes one bone in a single call.
+    tree. Candidate pairs are taken in decreasing similarity, each bone merged at most once per call (the
+    paper's pairwise rule; repeated M-steps merge longer chains).
 
     The merged bone is ``B~ = sum_i w_i B_i`` for the centres C and precisions Q, with
     ``w = softmax(S / temperature)`` over the members' weight masses ``S_i = sum_n W[n, i]``. The paper
@@ -661,31 +659,42 @@ def merge_bones(
         similarity: ``(B, B)`` motion similarity (:func:`s3o_warp.skeleton.motion_similarity`).
         weights: ``(N, B)`` W. centers: ``(B, 3)``. precisions: ``(B, 3, 3)``. parents: ``(B,)``.
         t_o: merge threshold (paper: 0.95; 0.99 finer, 0.90 coarser skeletons).
-        mode: greedy pairs or connected components (see above).
         temperature: softmax temperature of the merge weights (1 = paper).
         extents: optional ``(B,)`` growth references; a merged bone gets the blend of its members'.
 
     Returns:
         A :class:`SkeletonEdit` (merged bones take the index of their lowest member, others keep order).
     """
-    name = "merge_bones"
+    B = _np(weights).shape[1]
+    Sim = _np(similarity)
+    _check("merge_bones", "similarity", Sim, (B, B))
+    P = _np(parents, np.int64)
+    _check("merge_bones", "parents", P, (B,))
+    cand = [(float(min(Sim[b, p], Sim[p, b])), int(p), b) for b, p in enumerate(P) if p >= 0]
+    cand = [c for c in cand if c[0] > t_o]
+    cand.sort(key=lambda c: -c[0])
+    used = np.zeros(B, bool)
+    pairs = []
+    for _s, a, b in cand:
+        if not (used[a] or used[b]):
+            used[a] = used[b] = True
+            pairs.append((a, b))
+    return _merge_pairs("merge_bones", pairs, weights, centers, precisions, P, temperature, extents)
+
+
+def _merge_pairs(name: str, pairs, weights, centers, precisions, parents, temperature: float, extents) -> SkeletonEdit:
+    """The edit of :func:`merge_bones` and :func:`prune_short_bones`: each connected component of the tree
+    edges ``pairs`` becomes one bone, blended with ``softmax(S / temperature)`` of its members' weight masses."""
     Wn = _np(weights)
     B = Wn.shape[1]
-    Sim = _np(similarity)
-    _check(name, "similarity", Sim, (B, B))
     C = _np(centers)
     _check(name, "centers", C, (B, 3))
     Q = _np(precisions)
     _check(name, "precisions", Q, (B, 3, 3))
     P = _np(parents, np.int64)
     _check(name, "parents", P, (B,))
-    if mode not in ("greedy", "components"):
-        raise ValueError(f"{name}(): mode must be 'greedy' or 'components', got {mode!r}")
     if temperature <= 0:
         raise ValueError(f"{name}(): temperature must be > 0, got {temperature}")
-    cand = [(float(min(Sim[b, p], Sim[p, b])), int(p), b) for b, p in enumerate(P) if p >= 0]
-    cand = [c for c in cand if c[0] > t_o]
-    cand.sort(key=lambda c: -c[0])
     root = list(range(B))
 
     def find(a: int) -> int:
@@ -694,12 +703,7 @@ def merge_bones(
             a = root[a]
         return a
 
-    used = np.zeros(B, bool)
-    for _s, a, b in cand:
-        if mode == "greedy":
-            if used[a] or used[b]:
-                continue
-            used[a] = used[b] = True
+    for a, b in pairs:
         ra, rb = find(a), find(b)
         if ra != rb:
             root[max(ra, rb)] = min(ra, rb)
@@ -744,9 +748,10 @@ def prune_short_bones(lengths, min_length: float, weights, centers, precisions, 
     at all, whatever its length (an inner one's two joints then fall back to its neighbours' borders, which
     can lie far apart: a leg's top joint at the tail's base). Such bones carry no motion of their own that
     their neighbours do not, and they clutter the exported rig. A short end bone (no children) that owns vertices is kept: it is a tail tip, an
-    ear or a hoof. The pairs (short bone, neighbour) are merged as by :func:`merge_bones` in
-    ``"components"`` mode with the paper's weights (temperature 1), so a chain of short bones collapses
-    into the long bone it hangs from, whose centre, precision and motion win by their weight mass.
+    ear or a hoof. The pairs (short bone, neighbour) are merged as by :func:`merge_bones` with the paper's
+    weights (temperature 1), but all at once: each connected group of pairs becomes one bone, so a chain of
+    short bones collapses into the long bone it hangs from, whose centre, precision and motion win by their
+    weight mass.
 
     Args:
         lengths: ``(B,)`` canonical bone lengths (:func:`s3o_warp.skeleton.bone_lengths`).
@@ -763,25 +768,22 @@ def prune_short_bones(lengths, min_length: float, weights, centers, precisions, 
     _check("prune_short_bones", "lengths", L, (B,))
     if min_length < 0:
         raise ValueError(f"prune_short_bones(): min_length must be >= 0, got {min_length}")
-    S = np.zeros((B, B))
     kids = children_of(P)
     owned = np.bincount(assign_parts(_np(weights)), minlength=B)[:B]
     kids = [[c for c in k if owned[c] > 0] for k in kids]  # empty children go anyway: they do not make an inner bone
-    short = []
+    short, pairs = [], []
     for b in np.flatnonzero((L < min_length) | (owned == 0)):  # an empty bone's joints can lie far apart
         b = int(b)
         if not (kids[b] or owned[b] == 0):
             continue  # a short end bone with vertices: kept
         if P[b] < 0 and not kids[b]:
             continue  # a lone root: nothing to merge with
-        other = int(P[b]) if P[b] >= 0 else max(kids[b], key=lambda c: L[c])
-        S[b, other] = S[other, b] = 1.0
+        pairs.append((b, int(P[b]) if P[b] >= 0 else max(kids[b], key=lambda c: L[c])))
         short.append(b)
     if not short:
         return _identity_edit(_np(centers), _np(precisions), P, extents)
     log.info("prune_short_bones: bones %s shorter than %.4g or empty", short, min_length)
-    return merge_bones(S, weights, centers, precisions, P, t_o=0.5, mode="components", temperature=1.0,
-                       extents=extents)
+    return _merge_pairs("prune_short_bones", pairs, weights, centers, precisions, P, 1.0, extents)
 
 
 # ---------------------------------------------------------------------------------------------------

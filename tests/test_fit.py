@@ -972,7 +972,7 @@ def test_m_step_does_not_merge_on_a_few_frames(tiny_sequence, tmp_path, caplog):
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     sc = cfg.skeleton
-    sc.min_bone_length, sc.t_d, sc.merge_mode = 0.0, 1e9, "greedy"  # merges only
+    sc.min_bone_length, sc.t_d = 0.0, 1e9  # merges only
     sc.split_end_bones = False
     S, N = bone_motion_similarity(f.model, data, cfg)
     P, B0 = f.skel.parents, f.model.num_bones
@@ -987,7 +987,7 @@ def test_m_step_does_not_merge_on_a_few_frames(tiny_sequence, tmp_path, caplog):
     assert merge_min_frames(sc, data.num_frames) == sc.min_frames
     assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones == B0 - merges
     gc = g.cfg.skeleton
-    gc.t_o, gc.min_bone_length, gc.t_d, gc.merge_mode = sc.t_o, 0.0, 1e9, "greedy"
+    gc.t_o, gc.min_bone_length, gc.t_d = sc.t_o, 0.0, 1e9
     gc.split_end_bones = False
     gc.min_frames_fraction = min(1.0, (int(N[b, P[b]]) + 0.5) / (data.num_frames - 1))  # one frame pair more
     assert merge_min_frames(gc, data.num_frames) == int(N[b, P[b]]) + 1

@@ -267,7 +267,10 @@ def test_merge_together_merges_and_different_does_not():
     assert not sk.merge_bones(Sim3, W, C, Q, parents).changed
 
 
-def test_merge_modes_and_log_space_weights_do_not_overflow():
+def test_merge_is_greedy_and_log_space_weights_do_not_overflow():
+    """Each bone merges at most once per call (the paper's pairwise rule): of a chain whose bones all move
+    together, only the first pair merges; the merge weights are a softmax of the weight masses, without
+    overflow for thousands of vertices."""
     rng = np.random.default_rng(5)
     N = 5000
     labels = rng.choice(3, N, p=[0.5, 0.3, 0.2])
@@ -277,23 +280,24 @@ def test_merge_modes_and_log_space_weights_do_not_overflow():
     parents = np.array([-1, 0, 1])
     Sim = np.ones((3, 3))
     with np.errstate(over="raise"):
-        g = sk.merge_bones(Sim, W, C, Q, parents, mode="greedy")
-        c = sk.merge_bones(Sim, W, C, Q, parents, mode="components")
-        soft = sk.merge_bones(Sim, W, C, Q, parents, mode="components", temperature=1000.0)
-    assert g.num_bones == 2 and c.num_bones == 1  # greedy: each bone merges once per call
-    for e in (g, c, soft):
+        g = sk.merge_bones(Sim, W, C, Q, parents)
+        soft = sk.merge_bones(Sim, W, C, Q, parents, temperature=1000.0)
+    assert g.num_bones == 2 and [[i for i, _ in src] for src in g.sources] == [[0, 1], [2]]
+    for e in (g, soft):
         assert np.isfinite(e.centers).all() and np.isfinite(e.precisions).all()
         for src in e.sources:
             assert abs(sum(w for _, w in src) - 1) < 1e-12
-    S = W.sum(0)
-    for temp, e in ((1.0, c), (1000.0, soft)):
+    S = W.sum(0)[:2]
+    for temp, e in ((1.0, g), (1000.0, soft)):
         z = S / temp
         w = np.exp(z - z.max()) / np.exp(z - z.max()).sum()  # softmax computed in log space
         np.testing.assert_allclose([wi for _, wi in e.sources[0]], w, rtol=1e-12)
-        np.testing.assert_allclose(e.centers[0], w @ C, rtol=1e-12)
-        np.testing.assert_allclose(e.precisions[0], np.einsum("i,ijk->jk", w, Q), rtol=1e-12)
-    assert [wi for _, wi in c.sources[0]][0] == 1.0  # temperature 1: the largest part wins outright
+        np.testing.assert_allclose(e.centers[0], w @ C[:2], rtol=1e-12)
+        np.testing.assert_allclose(e.precisions[0], np.einsum("i,ijk->jk", w, Q[:2]), rtol=1e-12)
+    assert [wi for _, wi in g.sources[0]][0] == 1.0  # temperature 1: the largest part wins outright
     assert 0.1 < [wi for _, wi in soft.sources[0]][1] < 0.9
+    with pytest.raises(ValueError, match="temperature"):
+        sk.merge_bones(Sim, W, C, Q, parents, temperature=0.0)
 
 
 def _short_middle(n_long=100, n_short=5):
