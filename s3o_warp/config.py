@@ -334,8 +334,6 @@ class SkeletonConfig:
     """Precision of a new bone = sharpness / variance of its section's vertices."""
     max_bones: int = 40
     """Never grow the skeleton beyond this many bones."""
-    upsample_min_extent: float = 0.0
-    """Upsampling splits only bones whose extent is at least this fraction of the largest."""
     min_section_vertices: int = 4
     """Growth, upsampling and joint creation split a bone only when each new bone would own at least this many
     vertices (its part: the vertices it weighs most)."""

@@ -264,8 +264,7 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int) -> bool:
         if model.num_bones + (edit.num_bones - model.num_bones) <= sc.max_bones:
             changed |= _apply(model, opt, state, edit, "grow", epoch, sc)
     elif epoch == sc.e1:
-        edit = sk.upsample_skeleton(X, W, C, Q, state.parents, min_relative_extent=sc.upsample_min_extent,
-                                    sharpness=sc.sharpness, extents=state.extents,
+        edit = sk.upsample_skeleton(X, W, C, Q, state.parents, sharpness=sc.sharpness, extents=state.extents,
                                     min_section_vertices=sc.min_section_vertices)
         if edit.num_bones <= sc.max_bones:
             changed |= _apply(model, opt, state, edit, "upsample", epoch, sc)

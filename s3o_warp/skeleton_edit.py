@@ -482,22 +482,19 @@ def upsample_skeleton(
     centers,
     precisions,
     parents,
-    min_relative_extent: float = 0.0,
     sharpness: float = DEFAULT_SHARPNESS,
     min_section_vertices: int = 4,
     extents=None,
 ) -> SkeletonEdit:
     """One skeleton upsampling (Alg. 1 at epoch e1): split bones in two along their part's principal axis.
 
-    Every bone whose part extent is at least ``min_relative_extent`` x the largest part extent (0 =
-    every bone) is split at the median projection on the principal axis of ``I_b`` (equal vertex
+    Every bone is split at the median projection on the principal axis of ``I_b`` (equal vertex
     counts). The half nearer to the parent's centre keeps the parent (for a root: the half lower in
     the axis' dominant coordinate stays the root); the other half is its child; children of the old
     bone hang from the half nearer to them.
 
     Args:
         verts, weights, centers, precisions, parents: as in :func:`grow_skeleton`.
-        min_relative_extent: only bones at least this fraction of the longest part are split.
         sharpness: precision scale of the new bones.
         min_section_vertices: bones with fewer than twice this many part vertices are not split.
         extents: optional ``(B,)`` growth references to carry through the edit.
@@ -509,10 +506,9 @@ def upsample_skeleton(
     ext = part_extents(X, W)
     lab = assign_parts(W)
     splits = {}
-    top = ext.max() if len(ext) else 0.0
     for b in range(W.shape[1]):
         pts = X[lab == b]
-        if len(pts) < 2 * min_section_vertices or ext[b] < min_relative_extent * top or ext[b] <= 0:
+        if len(pts) < 2 * min_section_vertices or ext[b] <= 0:
             continue
         d = _principal_axis(pts)
         if P[b] >= 0:

@@ -489,11 +489,6 @@ def test_upsample_splits_every_bone_along_principal_axis():
     # the halves are thinner along x than across
     for Qb in e.precisions:
         assert Qb[0, 0] > 0 and np.all(np.linalg.eigvalsh(Qb) > 0)
-    # only the longest bones with a relative threshold
-    X2 = X.copy()
-    X2[X2[:, 0] > 2, 0] = 2 + (X2[X2[:, 0] > 2, 0] - 2) * 3
-    e2 = sk.upsample_skeleton(X2, W, C, Q, np.array([-1, 0, 1]), min_relative_extent=0.8)
-    assert e2.num_bones == 4 and [s[0][0] for s in e2.sources] == [0, 1, 2, 2]
 
 
 # -------------------------------------------------------------------------------------------------
@@ -923,7 +918,7 @@ def test_remap_carries_adam_state_for_unchanged_bone():
     _steps(m, opt, target, 4)
     X, W = m.verts.detach(), m.skinning().detach()
     C, Q = m.bone_centers.detach(), m.precisions().detach()
-    e = sk.upsample_skeleton(X, W, C, Q, np.array([-1, 0]), min_relative_extent=2.0)
+    e = sk.upsample_skeleton(X, W, C, Q, np.array([-1, 0]), min_section_vertices=len(X))
     assert not e.changed
     # split only bone 1 (grow: it is a leaf; its reference extent is tiny)
     e = sk.grow_skeleton(X, W, C, Q, np.array([-1, 0]), np.array([1e9, 1e-3]), sections=2)
