@@ -295,35 +295,19 @@ class SkeletonConfig:
     each face cut into joint_samples**2 small triangles, with the Gaussian bones' weights there, instead of over
     the vertices alone (1 = the vertices, the paper, the default until session 34). On a coarse mesh the band
     where two bones' weights both reach t_r often lies between a thin leg's vertices."""
-    split_end_bones: bool = True
-    """Not in the paper: also create a joint in an end bone (one joint, a leg's shin and paw) whose part's two
-    halves move relative to each other in a way the one rigid bone does not reproduce (median over the frames
-    of the unexplained share above t_u). Eq. 6 cannot split an end bone: its length runs from its joint to its
-    far end, which both move with the bone, so it never varies. false = eq. 6 alone (the paper)."""
-    split_inner_bones: bool = True
-    """Not in the paper: split_end_bones's test on inner bones too (two joints or more), cut half way between
-    their two farthest joints (false until session 34: docs/results.md, "Session 34"). Eq. 6 sees a knee inside
-    an inner bone only through its end-to-end length, which a 30-degree bend half way along shortens by 3 % (t_d
-    is 15 %); a small hoof or paw bone below a long leg bone makes that leg bone an inner one."""
     t_u: float = 0.4
-    """split_end_bones: the unexplained share of the halves' relative image motion, |observed - fitted| /
-    max(|observed|, |fitted|), median over the frames both halves are seen in, above which an end bone gets a
-    joint (0 = the fit reproduces the halves' motion, 0.5 = a knee the fit bends half way, 1 and above = it
-    does not follow at all)."""
+    """Not in the paper: also create a joint in a bone whose part's two halves move relative to each other in a way
+    the one rigid bone does not reproduce: when the unexplained share of the halves' relative image motion,
+    |observed - fitted| / max(|observed|, |fitted|), median over the frames both halves are seen in, is above t_u
+    (0 = the fit reproduces the halves' motion, 0.5 = a knee the fit bends half way, 1 and above = it does not
+    follow at all). Eq. 6 cannot split an end bone (one joint: a leg's shin and paw), whose length runs from its
+    joint to its far end, which both move with the bone, and sees a knee inside an inner bone only through its
+    end-to-end length, which a 30-degree bend half way along shortens by 3 % (t_d is 15 %)."""
     min_bone_length: float = 0.015
     """Not in the paper: after each merge, inner bones shorter than this fraction of the canonical mesh's bbox
     diagonal (and bones that own no vertex) are merged into their parent, and joint creation never leaves a half
     shorter than it (0 = the paper: no limit; without it, hips and shoulders collect knots of ever shorter bones).
     Short end bones (tail tips, ears, hooves) are kept."""
-    prune_empty_at_end: bool = True
-    """Not in the paper: when the fit ends, bones that own no vertex (the fit moved their region to a neighbour
-    after the last M-step, or a split left them none) are merged into their parent before the joints are
-    placed, as the M-step does after each merge (min_bone_length). Such a bone moves nothing, and its joints
-    fall back to far-apart borders (a leg's top joint at the tail's base). false = export them as they are."""
-    centre_joints: bool = True
-    """Then move each joint into the body: to the middle of a thin limb's cross-section, at most joint_depth
-    below the surface of a thick part (the mean above sits on the surface when the shared vertices are on
-    one side of a limb); false = the paper's mean as is."""
     joint_depth: float = 0.03
     """Deepest a joint is moved below the surface, as a fraction of the canonical mesh's bbox diagonal."""
     growth_factor: float = 2.0

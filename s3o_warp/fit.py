@@ -34,13 +34,13 @@ log = logging.getLogger(__name__)
 CHECKPOINT_VERSION = 2
 BRANCH_CHECKPOINT = "branch.pt"  # in <run>/checkpoints: the state before the first M-step that reads t_o
 BRANCH_LOG = "branch.log.jsonl"
-BRANCH_MAY_DIFFER = ("skeleton.t_o", "skeleton.t_u", "skeleton.split_end_bones",
-                     "skeleton.t_d", "skeleton.min_bone_length", "skeleton.split_inner_bones", "motion.refine_vertices",
+BRANCH_MAY_DIFFER = ("skeleton.t_o", "skeleton.t_u",
+                     "skeleton.t_d", "skeleton.min_bone_length", "motion.refine_vertices",
                      "motion.polish_steps", "motion.polish_lr_factor")
 """The settings a branched fit may change: the refinement and the polish after the joint phase read them only
 after the branch (and output.*, preset: no effect on the fit)."""
 EARLIER_DEFAULTS = {"motion.principal_point": "frame",
-                    "skeleton.split_inner_bones": False, "skeleton.joint_samples": 1}  # both changed in session 34
+                    "skeleton.joint_samples": 1}
 """Settings whose default changed since runs were first written without them: the value such a run had (a parent
 run's or a checkpoint's config that lacks the key is read with it, not with today's default)."""
 
@@ -789,12 +789,12 @@ class Fitter:
         self.save_checkpoint()
 
     def final_skeleton(self) -> None:
-        """The shape moved since the last M-step: bones left owning no vertex go (``skeleton.prune_empty_at_end``),
-        and the joints are placed on the final mesh."""
+        """The shape moved since the last M-step: bones left owning no vertex go (not in the paper), and the joints
+        are placed on the final mesh."""
         from s3o_warp.mstep import prune_empty_bones, refresh_joints
 
         sc = self.cfg.skeleton
-        if not (sc.method == "s3o" and sc.prune_empty_at_end and prune_empty_bones(self.model, self.opt, self.skel, sc)):
+        if not (sc.method == "s3o" and prune_empty_bones(self.model, self.opt, self.skel, sc)):
             refresh_joints(self.model, self.skel, sc)
 
     def resolve_crossings(self) -> list[int]:
@@ -1231,7 +1231,7 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
     ``sequence_dir`` is a sequence folder, a DAVIS root (with ``name``), a DAVIS sequence folder, or a
     video file / frame folder with a separate ``masks`` folder (see ``s3o_warp.video.open_sequence``).
     ``branch_from``: a finished or running fit of the same sequence whose settings differ from ``cfg`` only in
-    ``skeleton.t_o``, ``t_u``, ``split_end_bones``, ``split_inner_bones``, ``t_d``, ``min_bone_length``, ``motion.refine_vertices`` or ``motion.polish_*`` (:data:`BRANCH_MAY_DIFFER`: read only from the branch on); the fit starts from its ``checkpoints/branch.pt`` (the state just
+    ``skeleton.t_o``, ``t_u``, ``t_d``, ``min_bone_length``, ``motion.refine_vertices`` or ``motion.polish_*`` (:data:`BRANCH_MAY_DIFFER`: read only from the branch on); the fit starts from its ``checkpoints/branch.pt`` (the state just
     before the first merge) and its cached flow, so a t_o study pays for the shared part once (the rest of the run directory is this fit's own). With
     ``resume`` a checkpoint of ``out_dir`` itself comes first.
     """

@@ -7,8 +7,8 @@ Called by the fit between epochs of the joint phase. For epoch e (0-based, ``e1`
 - e > e1: physically constrained refinement: merge neighbouring bones whose flow-derived motion
   directions agree in every frame (eq. 8, cosine > t_o), merge bones shorter than ``min_bone_length``
   into their parents (not in the paper), and split bones whose length varies over the frames (eq. 6
-  corrected) into two bones joined at a new joint, and (``skeleton.split_end_bones``, not in the paper) end
-  bones whose two halves move in a way the one rigid bone does not reproduce (:func:`end_bone_bending`).
+  corrected) into two bones joined at a new joint, and (not in the paper) bones whose two halves move in a
+  way the one rigid bone does not reproduce (:func:`end_bone_bending`).
 
 The motion compared in eq. 8 is the flow between the two crops. Each merge step logs the similarity of every
 bone to its parent, the numbers t_o is compared with.
@@ -83,22 +83,23 @@ def joint_samples(model, sc) -> sk.SurfaceSamples | None:
 
 def refresh_joints(model, state: SkeletonState, sc) -> None:
     """Joints = the kinematic tree's (parent, child) pairs, placed at the mean of the shared vertices
-    (``sc.t_r``), then (``sc.centre_joints``) moved into the body (:func:`s3o_warp.skeleton.centre_in_body`).
-    ``sc`` is the run's ``SkeletonConfig``."""
+    (``sc.t_r``), then moved into the body (:func:`s3o_warp.skeleton.centre_in_body`; not in the paper): to the
+    middle of a thin limb's cross-section, at most ``joint_depth`` below the surface of a thick part (the mean
+    sits on the surface when the shared vertices are on one side of a limb). ``sc`` is the run's
+    ``SkeletonConfig``."""
     X, W = _xw(model)
     state.joints = sk.tree_joints(state.parents)
     if not len(state.joints):
         state.joint_positions = np.zeros((0, 3))
         return
     J = sk.joint_positions(X, W, state.joints, t_r=sc.t_r, samples=joint_samples(model, sc))
-    if sc.centre_joints:
-        J = sk.centre_in_body(J, X, model.faces.detach().cpu().numpy(), max_depth=sc.joint_depth)
-    state.joint_positions = J
+    state.joint_positions = sk.centre_in_body(J, X, model.faces.detach().cpu().numpy(), max_depth=sc.joint_depth)
 
 
 def prune_empty_bones(model, opt, state: SkeletonState, sc, epoch: int = -1) -> bool:
     """Merge the bones that own no vertex into their parents (:func:`s3o_warp.skeleton.prune_short_bones` with
-    no length limit), carrying motion and optimiser state over; the fit's last step (``skeleton.prune_empty_at_end``).
+    no length limit), carrying motion and optimiser state over; the fit's last step, not in the paper: such a bone
+    moves nothing, and its joints fall back to far-apart borders (a leg's top joint at the tail's base).
     ``epoch`` only labels the history entry and the log line (-1: after the last epoch). Returns whether the
     skeleton changed."""
     if not len(state.joints):
@@ -188,9 +189,8 @@ def bone_length_variation(model, data, state: SkeletonState, cfg) -> tuple[np.nd
 @torch.no_grad()
 def end_bone_bending(model, data, state: SkeletonState, E: np.ndarray, cfg) -> np.ndarray:
     """Per bone, how much of the relative motion of its part's two halves the fit leaves unexplained
-    (:func:`s3o_warp.skeleton.unexplained_motion`), ``(B,)``; NaN for bones that are not tested (end bones, one
-    joint, with ``skeleton.split_end_bones``; inner bones, two joints or more, with ``split_inner_bones``), are
-    shorter than twice ``skeleton.min_bone_length``, cannot be cut or are seen in too few frames.
+    (:func:`s3o_warp.skeleton.unexplained_motion`), ``(B,)``; NaN for bones that have no joint, are shorter than
+    twice ``skeleton.min_bone_length``, cannot be cut or are seen in too few frames.
 
     Not in the paper: an end bone's length runs from its joint to its far end, which both move with the bone,
     so eq. 6 never gives it a joint; a knee inside it shows in the flow instead, as two halves that the one
@@ -207,8 +207,7 @@ def end_bone_bending(model, data, state: SkeletonState, E: np.ndarray, cfg) -> n
     if not len(state.joints):
         return out
     count = np.bincount(np.asarray(state.joints).ravel(), minlength=B)
-    ends = ((count == 1) if sc.split_end_bones else False) | ((count >= 2) if sc.split_inner_bones else False)
-    ends &= sk.bone_lengths(E, X) >= 2.0 * sc.min_bone_length * sk.size_of(X)
+    ends = (count >= 1) & (sk.bone_lengths(E, X) >= 2.0 * sc.min_bone_length * sk.size_of(X))
     if not ends.any():
         return out
     C = model.bone_centers.detach().cpu().double().numpy()
@@ -295,12 +294,11 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int) -> bool:
             changed |= _apply(model, opt, state, _prune_edit(model, state, sc, sc.min_bone_length), "prune", epoch, sc)
         if len(state.joints):
             split, E = bone_length_variation(model, data, state, cfg)
-            if sc.split_end_bones or sc.split_inner_bones:  # not in the paper: a knee inside a bone (end_bone_bending)
-                bend = end_bone_bending(model, data, state, E, cfg) > sc.t_u
-                if bend.any():
-                    log.info("M-step epoch %d: bones %s bend inside (unexplained motion > t_u %.3g)", epoch,
-                             np.flatnonzero(bend).tolist(), sc.t_u)
-                split = split | bend
+            bend = end_bone_bending(model, data, state, E, cfg) > sc.t_u  # not in the paper: a knee inside a bone
+            if bend.any():
+                log.info("M-step epoch %d: bones %s bend inside (unexplained motion > t_u %.3g)", epoch,
+                         np.flatnonzero(bend).tolist(), sc.t_u)
+            split = split | bend
             if split.any() and model.num_bones + int(split.sum()) <= sc.max_bones:
                 X, W = _xw(model)
                 C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)

@@ -326,7 +326,7 @@ def test_a_branch_refuses_other_settings_and_a_run_without_its_checkpoint(tiny_s
     over = {"coarse.steps": 2, "motion.warmup_steps": 2, "motion.steps": 8, "skeleton.epochs": 4, "skeleton.e1": 1}
     a = tmp_path / "a"
     fit(tiny_sequence, a, _cfg(**over), torch.device("cpu"))
-    with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o, skeleton.t_u, skeleton.split_end_bones, skeleton.t_d, skeleton.min_bone_length, skeleton.split_inner_bones, motion.refine_vertices, motion.polish_steps, motion.polish_lr_factor may differ"):
+    with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o, skeleton.t_u, skeleton.t_d, skeleton.min_bone_length, motion.refine_vertices, motion.polish_steps, motion.polish_lr_factor may differ"):
         fit(tiny_sequence, tmp_path / "b", _cfg(**over, **{"motion.lr_bones": 0.123}), torch.device("cpu"), branch_from=a)
     assert not (tmp_path / "b").exists()  # refused before any work
     # a run from before a setting existed ran with its default: that setting does not count as a difference
@@ -717,9 +717,9 @@ def _joint_fitter(tiny_sequence, tmp_path):
     """A Fitter in its joint phase after 3 steps on frames 0-3 (the bones have some motion). The M-step tests'
     cases (a far leg never seen moving, the shortest inner bone) were picked on this state, made with the medium
     preset's own finest flow level (1), which is pinned so the state stays, and with the paper's joints over the
-    vertices and no inner-bone split (the defaults then; the tests of those two options turn them on)."""
+    vertices (the default then; the test of that option turns it on)."""
     cfg = _cfg(**{"coarse.steps": 5, "motion.warmup_steps": 5, "data.flow_finest_scale": 1,
-                  "skeleton.joint_samples": 1, "skeleton.split_inner_bones": False})
+                  "skeleton.joint_samples": 1})
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
     f.phase = "joint"
@@ -831,7 +831,6 @@ def test_joint_samples_reach_the_joints_and_the_m_step(tiny_sequence, tmp_path):
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     sc = cfg.skeleton
-    sc.centre_joints = False
     assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1) and len(f.skel.joints)
     J1 = f.skel.joint_positions.copy()
     sc.joint_samples = 4
@@ -839,7 +838,9 @@ def test_joint_samples_reach_the_joints_and_the_m_step(tiny_sequence, tmp_path):
     X, W = f.model.verts.detach().double().numpy(), f.model.skinning().detach().double().numpy()
     s = sk.surface_samples(X, f.model.faces.numpy(), f.model.bone_centers.detach().double().numpy(),
                            f.model.precisions().detach().double().numpy(), 4)
-    np.testing.assert_allclose(f.skel.joint_positions, sk.joint_positions(X, W, f.skel.joints, t_r=sc.t_r, samples=s))
+    J = sk.joint_positions(X, W, f.skel.joints, t_r=sc.t_r, samples=s)
+    np.testing.assert_allclose(f.skel.joint_positions, sk.centre_in_body(J, X, f.model.faces.numpy(),
+                                                                          max_depth=sc.joint_depth))
     assert not np.allclose(f.skel.joint_positions, J1)
     split, E = bone_length_variation(f.model, data, f.skel, cfg)
     np.testing.assert_allclose(E, sk.bone_endpoints(X, W, f.skel.joints, t_r=sc.t_r, far_fraction=sc.far_fraction,
@@ -850,9 +851,10 @@ def test_joint_samples_reach_the_joints_and_the_m_step(tiny_sequence, tmp_path):
     assert len(f.skel.parents) == f.model.num_bones == len(f.skel.joints) + 1
 
 
-def test_m_step_splits_end_bones_that_bend_and_keeps_the_loss(tiny_sequence, tmp_path):
-    """skeleton.split_end_bones: end bones whose halves' unexplained motion is above t_u get a joint (here t_u < 0:
-    every end bone seen in enough frames); off, or above every bone's, nothing splits. The loss does not jump."""
+def test_m_step_splits_bones_that_bend_and_keeps_the_loss(tiny_sequence, tmp_path):
+    """Bones whose halves' unexplained motion is above t_u get a joint, end bones (one joint) and inner bones (two
+    joints or more) alike (here t_u < 0: every bone seen in enough frames); above every bone's, nothing splits.
+    The loss does not jump."""
     from s3o_warp.mstep import bone_length_variation, end_bone_bending, m_step
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
@@ -860,48 +862,18 @@ def test_m_step_splits_end_bones_that_bend_and_keeps_the_loss(tiny_sequence, tmp
     assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1)  # upsampling: the joints the refinement reads
     sc.t_o, sc.t_d, sc.min_bone_length = 2.0, 1e9, 0.0  # no merge, no pruning, no eq. 6 joint
     B0 = f.model.num_bones
+    count = np.bincount(f.skel.joints.ravel(), minlength=B0)
     _, E = bone_length_variation(f.model, data, f.skel, cfg)
     r = end_bone_bending(f.model, data, f.skel, E, cfg)
-    ends = np.bincount(f.skel.joints.ravel(), minlength=B0) == 1
-    assert np.isfinite(r).sum() >= 1 and not np.isfinite(r[~ends]).any()
+    assert np.isfinite(r[count == 1]).any() and np.isfinite(r[count >= 2]).any()
+    assert not np.isfinite(r[count == 0]).any()
     assert ((r[np.isfinite(r)] >= 0) & (r[np.isfinite(r)] <= 2)).all()
-    sc.split_end_bones, sc.t_u = False, -1.0
-    assert not m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones == B0
-    sc.split_end_bones, sc.t_u = True, float(np.nanmax(r)) + 0.01
+    sc.t_u = float(np.nanmax(r)) + 0.01
     assert not m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones == B0
     before, loss0 = _posed_and_loss(f, frames)
     sc.t_u = -1.0
     assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1)
     assert f.model.num_bones == B0 + int(np.isfinite(r).sum()) and f.skel.history[-1]["operation"] == "joint"
-    after, loss1 = _posed_and_loss(f, frames)
-    _assert_no_jump(before, after, loss0, loss1)
-
-
-def test_m_step_splits_inner_bones_that_bend(tiny_sequence, tmp_path):
-    """skeleton.split_inner_bones: the halves test runs on the bones with two joints or more too (alone: only on
-    them), and with t_u < 0 every one measured gets a joint."""
-    from s3o_warp.mstep import bone_length_variation, end_bone_bending, m_step
-
-    cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
-    sc = cfg.skeleton
-    assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1)
-    sc.t_o, sc.t_d, sc.min_bone_length = 2.0, 1e9, 0.0  # no merge, no pruning, no eq. 6 joint
-    B0 = f.model.num_bones
-    count = np.bincount(f.skel.joints.ravel(), minlength=B0)
-    _, E = bone_length_variation(f.model, data, f.skel, cfg)
-    r_end = end_bone_bending(f.model, data, f.skel, E, cfg)
-    sc.split_inner_bones = True
-    r_all = end_bone_bending(f.model, data, f.skel, E, cfg)
-    sc.split_end_bones = False
-    r_inner = end_bone_bending(f.model, data, f.skel, E, cfg)
-    assert np.isfinite(r_inner).sum() >= 1 and not np.isfinite(r_inner[count < 2]).any()
-    np.testing.assert_array_equal(np.isfinite(r_all), np.isfinite(r_end) | np.isfinite(r_inner))
-    np.testing.assert_allclose(r_all[count >= 2], r_inner[count >= 2])
-    np.testing.assert_allclose(r_all[count == 1], r_end[count == 1])
-    sc.t_u = -1.0
-    before, loss0 = _posed_and_loss(f, frames)
-    assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1)
-    assert f.model.num_bones == B0 + int(np.isfinite(r_inner).sum()) and f.skel.history[-1]["operation"] == "joint"
     after, loss1 = _posed_and_loss(f, frames)
     _assert_no_jump(before, after, loss0, loss1)
 
@@ -913,8 +885,7 @@ def test_m_step_prunes_short_bones_and_keeps_the_loss(tiny_sequence, tmp_path):
     from s3o_warp.mstep import m_step
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
-    cfg.skeleton.t_o, cfg.skeleton.t_d = 2.0, 1e9  # no motion merge, no joint creation: only the pruning
-    cfg.skeleton.split_end_bones = False
+    cfg.skeleton.t_o, cfg.skeleton.t_d, cfg.skeleton.t_u = 2.0, 1e9, float("inf")  # no merge, no joint: pruning only
     X, W = f.model.verts.detach().double().numpy(), f.model.skinning().detach().double().numpy()
     L = sk.bone_lengths(sk.bone_endpoints(X, W, f.skel.joints, t_r=cfg.skeleton.t_r), X) / sk.size_of(X)
     inner = np.flatnonzero(np.bincount(f.skel.parents[f.skel.parents >= 0], minlength=len(L)) > 0)
@@ -936,7 +907,7 @@ def test_m_step_prunes_short_bones_and_keeps_the_loss(tiny_sequence, tmp_path):
 
 
 def test_the_fits_end_merges_bones_that_own_no_vertex(tiny_sequence, tmp_path):
-    """skeleton.prune_empty_at_end: an inner bone that owns no vertex when the fit ends is merged into its parent
+    """An inner bone that owns no vertex when the fit ends is merged into its parent
     (its child re-hangs there, a joint between them replaces its two), and the posed mesh and the loss stay."""
     from s3o_warp.mstep import m_step
 
@@ -950,10 +921,6 @@ def test_the_fits_end_merges_bones_that_own_no_vertex(tiny_sequence, tmp_path):
         f.model.bone_centers[b] += 10.0 * (f.model.verts.amax(0) - f.model.verts.amin(0)).norm()
     assert (f.model.skinning().argmax(1) != b).all()
     B0, parent, kids = f.model.num_bones, int(P[b]), np.flatnonzero(P == b)
-    cfg.skeleton.prune_empty_at_end = False
-    f.final_skeleton()
-    assert f.model.num_bones == B0 and len(f.skel.joints) == B0 - 1  # off: kept, joints refreshed
-    cfg.skeleton.prune_empty_at_end = True
     f.final_skeleton()
     assert f.model.num_bones == B0 - 1 and f.skel.history[-1]["operation"] == "prune empty (end)"
     new = lambda x: x - (x > b)  # noqa: E731 - indices after b shift down by one
@@ -972,8 +939,7 @@ def test_m_step_does_not_merge_on_a_few_frames(tiny_sequence, tmp_path, caplog):
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     sc = cfg.skeleton
-    sc.min_bone_length, sc.t_d = 0.0, 1e9  # merges only
-    sc.split_end_bones = False
+    sc.min_bone_length, sc.t_d, sc.t_u = 0.0, 1e9, float("inf")  # merges only
     S, N = bone_motion_similarity(f.model, data, cfg)
     P, B0 = f.skel.parents, f.model.num_bones
     kids = [b for b in range(B0) if P[b] >= 0 and np.isfinite(S[b, P[b]])]
@@ -987,8 +953,7 @@ def test_m_step_does_not_merge_on_a_few_frames(tiny_sequence, tmp_path, caplog):
     assert merge_min_frames(sc, data.num_frames) == sc.min_frames
     assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones == B0 - merges
     gc = g.cfg.skeleton
-    gc.t_o, gc.min_bone_length, gc.t_d = sc.t_o, 0.0, 1e9
-    gc.split_end_bones = False
+    gc.t_o, gc.min_bone_length, gc.t_d, gc.t_u = sc.t_o, 0.0, 1e9, float("inf")
     gc.min_frames_fraction = min(1.0, (int(N[b, P[b]]) + 0.5) / (data.num_frames - 1))  # one frame pair more
     assert merge_min_frames(gc, data.num_frames) == int(N[b, P[b]]) + 1
     with caplog.at_level(logging.INFO, logger="s3o_warp.mstep"):
