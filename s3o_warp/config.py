@@ -290,11 +290,6 @@ class SkeletonConfig:
     session 31; 0.15 gives the legs more joints: docs/results.md, "Session 31")."""
     t_r: float = 0.4
     """Joint position: mean of the vertices with both bones' weights >= t_r."""
-    joint_samples: int = 4
-    """Not in the paper: take the joints (t_r) and the bone ends of eq. 6 over points spread over the surface,
-    each face cut into joint_samples**2 small triangles, with the Gaussian bones' weights there, instead of over
-    the vertices alone (1 = the vertices, the paper, the default until session 34). On a coarse mesh the band
-    where two bones' weights both reach t_r often lies between a thin leg's vertices."""
     t_u: float = 0.4
     """Not in the paper: also create a joint in a bone whose part's two halves move relative to each other in a way
     the one rigid bone does not reproduce: when the unexplained share of the halves' relative image motion,

@@ -39,8 +39,7 @@ BRANCH_MAY_DIFFER = ("skeleton.t_o", "skeleton.t_u",
                      "motion.polish_steps", "motion.polish_lr_factor")
 """The settings a branched fit may change: the refinement and the polish after the joint phase read them only
 after the branch (and output.*, preset: no effect on the fit)."""
-EARLIER_DEFAULTS = {"motion.principal_point": "frame",
-                    "skeleton.joint_samples": 1}
+EARLIER_DEFAULTS = {"motion.principal_point": "frame"}
 """Settings whose default changed since runs were first written without them: the value such a run had (a parent
 run's or a checkpoint's config that lacks the key is read with it, not with today's default)."""
 
@@ -380,9 +379,6 @@ class Fitter:
         if cfg.skeleton.min_section_vertices < 1:
             raise ConfigError(f"skeleton.min_section_vertices must be >= 1 (vertices each new bone of a split owns), "
                               f"got {cfg.skeleton.min_section_vertices}")
-        if cfg.skeleton.joint_samples < 1:
-            raise ConfigError(f"skeleton.joint_samples must be >= 1 (1 = joints over the vertices, k = over each face's "
-                              f"k x k grid), got {cfg.skeleton.joint_samples}")
         if not 0 <= cfg.skeleton.min_frames_fraction <= 1:
             raise ConfigError(f"skeleton.min_frames_fraction must be in [0, 1] (a fraction of the frame pairs; 0 = "
                               f"skeleton.min_frames alone), got {cfg.skeleton.min_frames_fraction}")

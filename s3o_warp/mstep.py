@@ -31,6 +31,12 @@ from s3o_warp import skeleton as sk
 
 log = logging.getLogger(__name__)
 
+JOINT_SAMPLES = 4
+"""Not in the paper: the joints (t_r) and the bone ends of eq. 6 are taken over points spread over the canonical
+surface, each face cut into JOINT_SAMPLES**2 small triangles, with the Gaussian bones' weights there, instead of
+over the vertices alone (1, the paper). On a coarse mesh the band where two bones' weights both reach t_r often
+lies between a thin leg's vertices."""
+
 
 @dataclass
 class SkeletonState:
@@ -72,13 +78,11 @@ def _q(model) -> np.ndarray:
     return model.precisions().detach().cpu().double().numpy()
 
 
-def joint_samples(model, sc) -> sk.SurfaceSamples | None:
-    """The points over the canonical surface the joints are taken over (``skeleton.joint_samples``), or None
-    (the vertices)."""
-    if sc.joint_samples <= 1:
-        return None
+def joint_samples(model) -> sk.SurfaceSamples | None:
+    """The points over the canonical surface the joints are taken over (:data:`JOINT_SAMPLES`), or None (the
+    vertices)."""
     return sk.surface_samples(model.verts.detach().cpu().double().numpy(), model.faces.detach().cpu().numpy(),
-                              model.bone_centers.detach().cpu().double().numpy(), _q(model), sc.joint_samples)
+                              model.bone_centers.detach().cpu().double().numpy(), _q(model), JOINT_SAMPLES)
 
 
 def refresh_joints(model, state: SkeletonState, sc) -> None:
@@ -92,7 +96,7 @@ def refresh_joints(model, state: SkeletonState, sc) -> None:
     if not len(state.joints):
         state.joint_positions = np.zeros((0, 3))
         return
-    J = sk.joint_positions(X, W, state.joints, t_r=sc.t_r, samples=joint_samples(model, sc))
+    J = sk.joint_positions(X, W, state.joints, t_r=sc.t_r, samples=joint_samples(model))
     state.joint_positions = sk.centre_in_body(J, X, model.faces.detach().cpu().numpy(), max_depth=sc.joint_depth)
 
 
@@ -113,7 +117,7 @@ def _prune_edit(model, state: SkeletonState, sc, min_length: float):
     X, W = _xw(model)
     C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
     L = sk.bone_lengths(sk.bone_endpoints(X, W, state.joints, t_r=sc.t_r, far_fraction=sc.far_fraction,
-                                          samples=joint_samples(model, sc)), X)
+                                          samples=joint_samples(model)), X)
     return sk.prune_short_bones(L, min_length * sk.size_of(X), W, C, Q, state.parents, extents=state.extents)
 
 
@@ -177,7 +181,7 @@ def bone_length_variation(model, data, state: SkeletonState, cfg) -> tuple[np.nd
     sc = cfg.skeleton
     X, W = _xw(model)
     E = sk.bone_endpoints(X, W, state.joints, t_r=sc.t_r, far_fraction=sc.far_fraction,
-                          samples=joint_samples(model, sc))
+                          samples=joint_samples(model))
     lengths = []
     Wt = model.skinning()
     for s in range(0, data.num_frames, cfg.motion.batch_frames):

@@ -345,12 +345,6 @@ def test_a_branch_refuses_other_settings_and_a_run_without_its_checkpoint(tiny_s
     assert _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.principal_point": "frame"})) == ck
     with pytest.raises(InputError, match=r"differ in motion.principal_point \('frame' there, 'shared' here\)"):
         _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.principal_point": "shared"}))
-    del state["config"]["skeleton"]["joint_samples"]  # 1 until session 34, 4 now
-    torch.save(state, ck)
-    assert _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.principal_point": "frame",
-                                                               "skeleton.joint_samples": 1})) == ck
-    with pytest.raises(InputError, match=r"differ in skeleton.joint_samples \(1 there, 4 here\)"):
-        _branch_checkpoint(a, tmp_path / "e", _cfg(**over, **{"motion.principal_point": "frame"}))
     with pytest.raises(InputError, match="that is the run directory itself"):
         fit(tiny_sequence, a, _cfg(**over), torch.device("cpu"), branch_from=a)
     short = tmp_path / "short"  # 3 epochs, e1 1: the last M-step is the upsampling, t_o is never read
@@ -591,7 +585,6 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
     ("motion.polish_steps=-1", "motion.polish_steps"),
     ("motion.polish_lr_factor=0", "motion.polish_lr_factor"),
     ("skeleton.min_section_vertices=0", "min_section_vertices"),
-    ("skeleton.joint_samples=0", "joint_samples"),
     ("motion.refine_vertices=-1", "motion.refine_vertices"),
     ("motion.principal_point=centre", "motion.principal_point"),
 ])
@@ -716,10 +709,8 @@ def test_coarse_fit_keeps_the_lifted_depth(tiny_sequence, tmp_path, freeze):
 def _joint_fitter(tiny_sequence, tmp_path):
     """A Fitter in its joint phase after 3 steps on frames 0-3 (the bones have some motion). The M-step tests'
     cases (a far leg never seen moving, the shortest inner bone) were picked on this state, made with the medium
-    preset's own finest flow level (1), which is pinned so the state stays, and with the paper's joints over the
-    vertices (the default then; the test of that option turns it on)."""
-    cfg = _cfg(**{"coarse.steps": 5, "motion.warmup_steps": 5, "data.flow_finest_scale": 1,
-                  "skeleton.joint_samples": 1})
+    preset's own finest flow level (1), which is pinned so the state stays."""
+    cfg = _cfg(**{"coarse.steps": 5, "motion.warmup_steps": 5, "data.flow_finest_scale": 1})
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
     f.phase = "joint"
@@ -823,25 +814,26 @@ def test_min_section_vertices_stops_the_m_steps_splits(tiny_sequence, tmp_path):
     assert f.skel.history[-1]["operation"] == "joint"
 
 
-def test_joint_samples_reach_the_joints_and_the_m_step(tiny_sequence, tmp_path):
-    """skeleton.joint_samples: the joints are taken over the surface samples (not the vertices), and the
-    M-step's lengths and joint creation run on them."""
+def test_joint_samples_reach_the_joints_and_the_m_step(tiny_sequence, tmp_path, monkeypatch):
+    """The joints are taken over the surface samples (each face's 4 x 4 grid, mstep.JOINT_SAMPLES), not over the
+    vertices (1, the paper), and the M-step's lengths and joint creation run on them."""
+    from s3o_warp import mstep
     from s3o_warp import skeleton as sk
     from s3o_warp.mstep import bone_length_variation, m_step, refresh_joints
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     sc = cfg.skeleton
     assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1) and len(f.skel.joints)
-    J1 = f.skel.joint_positions.copy()
-    sc.joint_samples = 4
-    refresh_joints(f.model, f.skel, sc)
+    J4 = f.skel.joint_positions.copy()
     X, W = f.model.verts.detach().double().numpy(), f.model.skinning().detach().double().numpy()
     s = sk.surface_samples(X, f.model.faces.numpy(), f.model.bone_centers.detach().double().numpy(),
                            f.model.precisions().detach().double().numpy(), 4)
     J = sk.joint_positions(X, W, f.skel.joints, t_r=sc.t_r, samples=s)
-    np.testing.assert_allclose(f.skel.joint_positions, sk.centre_in_body(J, X, f.model.faces.numpy(),
-                                                                          max_depth=sc.joint_depth))
-    assert not np.allclose(f.skel.joint_positions, J1)
+    np.testing.assert_allclose(J4, sk.centre_in_body(J, X, f.model.faces.numpy(), max_depth=sc.joint_depth))
+    monkeypatch.setattr(mstep, "JOINT_SAMPLES", 1)
+    refresh_joints(f.model, f.skel, sc)
+    assert not np.allclose(f.skel.joint_positions, J4)
+    monkeypatch.undo()
     split, E = bone_length_variation(f.model, data, f.skel, cfg)
     np.testing.assert_allclose(E, sk.bone_endpoints(X, W, f.skel.joints, t_r=sc.t_r, far_fraction=sc.far_fraction,
                                                     samples=s))
@@ -882,12 +874,13 @@ def test_m_step_prunes_short_bones_and_keeps_the_loss(tiny_sequence, tmp_path):
     """After e1 the M-step merges bones shorter than skeleton.min_bone_length into their parents; the
     posed mesh and the loss barely move (the short bone's few vertices follow its parent)."""
     from s3o_warp import skeleton as sk
-    from s3o_warp.mstep import m_step
+    from s3o_warp.mstep import joint_samples, m_step
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     cfg.skeleton.t_o, cfg.skeleton.t_d, cfg.skeleton.t_u = 2.0, 1e9, float("inf")  # no merge, no joint: pruning only
     X, W = f.model.verts.detach().double().numpy(), f.model.skinning().detach().double().numpy()
-    L = sk.bone_lengths(sk.bone_endpoints(X, W, f.skel.joints, t_r=cfg.skeleton.t_r), X) / sk.size_of(X)
+    E = sk.bone_endpoints(X, W, f.skel.joints, t_r=cfg.skeleton.t_r, samples=joint_samples(f.model))
+    L = sk.bone_lengths(E, X) / sk.size_of(X)
     inner = np.flatnonzero(np.bincount(f.skel.parents[f.skel.parents >= 0], minlength=len(L)) > 0)
     cfg.skeleton.min_bone_length = float(L[inner].min() * 1.001)  # the shortest inner bone is short
     # bones that own no vertex go too, whatever their length (prune_short_bones); the fit's state may hold some
