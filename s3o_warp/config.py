@@ -286,8 +286,8 @@ class SkeletonConfig:
     t_o: float = 0.95
     """Merge bones whose flow-derived motion directions have cosine > t_o in every frame (0.99 finer, 0.90 coarser)."""
     t_d: float = 0.15
-    """Create a joint in a bone whose length varies over frames by more than t_d of its median length (0.25 until
-    session 31; 0.15 gives the legs more joints: docs/results.md, "Session 31")."""
+    """Create a joint in a bone whose length varies over frames by more than t_d of its median length (the paper's
+    0.25 gives the legs fewer joints)."""
     t_r: float = 0.4
     """Joint position: mean of the vertices with both bones' weights >= t_r."""
     t_u: float = 0.4
@@ -298,42 +298,8 @@ class SkeletonConfig:
     follow at all). Eq. 6 cannot split an end bone (one joint: a leg's shin and paw), whose length runs from its
     joint to its far end, which both move with the bone, and sees a knee inside an inner bone only through its
     end-to-end length, which a 30-degree bend half way along shortens by 3 % (t_d is 15 %)."""
-    min_bone_length: float = 0.015
-    """Not in the paper: after each merge, inner bones shorter than this fraction of the canonical mesh's bbox
-    diagonal (and bones that own no vertex) are merged into their parent, and joint creation never leaves a half
-    shorter than it (0 = the paper: no limit; without it, hips and shoulders collect knots of ever shorter bones).
-    Short end bones (tail tips, ears, hooves) are kept."""
-    joint_depth: float = 0.03
-    """Deepest a joint is moved below the surface, as a fraction of the canonical mesh's bbox diagonal."""
-    growth_factor: float = 2.0
-    """Grow an end part whose extent passed growth_factor x its initial extent."""
-    growth_sections: int = 2
-    """Sections k a grown end part is split into."""
-    sharpness: float = 0.6667
-    """Precision of a new bone = sharpness / variance of its section's vertices."""
     max_bones: int = 40
     """Never grow the skeleton beyond this many bones."""
-    min_section_vertices: int = 4
-    """Growth, upsampling and joint creation split a bone only when each new bone would own at least this many
-    vertices (its part: the vertices it weighs most)."""
-    merge_temperature: float = 1.0
-    """Temperature of the log-space softmax of the merge weights (sum of skinning weights per bone)."""
-    min_visible: float = 0.1
-    """Bone flow: skip frames where less than this fraction of a bone's weight is visible."""
-    min_mass: float = 3.0
-    """Bone flow: skip frames where a bone's visible weight mass (in vertices) is below this."""
-    min_flow: float = 0.5
-    """Motion similarity: frames where both bones move less than this (crop pixels) say nothing about direction."""
-    min_frames: int = 2
-    """Motion similarity: bone pairs with fewer usable frames are never merged."""
-    min_frames_fraction: float = 0.25
-    """Not in the paper: nor are pairs compared on fewer than this fraction of the frame pairs (the larger of
-    the two minimums applies; 0 = min_frames alone). "Moves together in every frame" read off a few frames is
-    no evidence: on the 120-degree Fox (seed 1) a far-side hind thigh seen moving in 6 of 47 frame pairs agreed
-    with its shin there (0.957) and the two merged into one bone with no knee; the other bones are seen in
-    21-45."""
-    far_fraction: float = 0.1
-    """Bone endpoints of a one-joint bone: mean of its farthest fraction of part vertices."""
     virtual_bones: int = 25
     """Bone count of the virtual-bones baseline."""
 

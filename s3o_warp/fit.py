@@ -34,8 +34,7 @@ log = logging.getLogger(__name__)
 CHECKPOINT_VERSION = 2
 BRANCH_CHECKPOINT = "branch.pt"  # in <run>/checkpoints: the state before the first M-step that reads t_o
 BRANCH_LOG = "branch.log.jsonl"
-BRANCH_MAY_DIFFER = ("skeleton.t_o", "skeleton.t_u",
-                     "skeleton.t_d", "skeleton.min_bone_length", "motion.refine_vertices",
+BRANCH_MAY_DIFFER = ("skeleton.t_o", "skeleton.t_u", "skeleton.t_d", "motion.refine_vertices",
                      "motion.polish_steps", "motion.polish_lr_factor")
 """The settings a branched fit may change: the refinement and the polish after the joint phase read them only
 after the branch (and output.*, preset: no effect on the fit)."""
@@ -340,9 +339,6 @@ class Fitter:
                               f"{cfg.motion.crossing_max_gap}")
         if cfg.motion.crossing_space not in ("object", "image"):
             raise ConfigError(f"motion.crossing_space must be 'object' or 'image', got {cfg.motion.crossing_space!r}")
-        if not 0 <= cfg.skeleton.min_bone_length < 0.5:
-            raise ConfigError(f"skeleton.min_bone_length must be in [0, 0.5) (a fraction of the object's size; 0 = off), "
-                              f"got {cfg.skeleton.min_bone_length}")
         if cfg.motion.w_joint < 0:
             raise ConfigError(f"motion.w_joint must be >= 0 (0 = off), got {cfg.motion.w_joint}")
         if cfg.motion.sweep_stride < 0:
@@ -376,12 +372,6 @@ class Fitter:
             if cfg.motion.resample_fallback == "isotropic":
                 log.warning("motion.resample_fallback=isotropic needs pymeshlab, which is not installed: a refused "
                             "resampling keeps the mesh (pip install pymeshlab, or set motion.resample_fallback=none)")
-        if cfg.skeleton.min_section_vertices < 1:
-            raise ConfigError(f"skeleton.min_section_vertices must be >= 1 (vertices each new bone of a split owns), "
-                              f"got {cfg.skeleton.min_section_vertices}")
-        if not 0 <= cfg.skeleton.min_frames_fraction <= 1:
-            raise ConfigError(f"skeleton.min_frames_fraction must be in [0, 1] (a fraction of the frame pairs; 0 = "
-                              f"skeleton.min_frames alone), got {cfg.skeleton.min_frames_fraction}")
         self.coarse = coarse_res
         self.model = S3OModel(coarse_res.init).to(device)
         self.edges = mesh_edges(self.model.faces).to(device)
@@ -1227,7 +1217,7 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
     ``sequence_dir`` is a sequence folder, a DAVIS root (with ``name``), a DAVIS sequence folder, or a
     video file / frame folder with a separate ``masks`` folder (see ``s3o_warp.video.open_sequence``).
     ``branch_from``: a finished or running fit of the same sequence whose settings differ from ``cfg`` only in
-    ``skeleton.t_o``, ``t_u``, ``t_d``, ``min_bone_length``, ``motion.refine_vertices`` or ``motion.polish_*`` (:data:`BRANCH_MAY_DIFFER`: read only from the branch on); the fit starts from its ``checkpoints/branch.pt`` (the state just
+    ``skeleton.t_o``, ``t_u``, ``t_d``, ``motion.refine_vertices`` or ``motion.polish_*`` (:data:`BRANCH_MAY_DIFFER`: read only from the branch on); the fit starts from its ``checkpoints/branch.pt`` (the state just
     before the first merge) and its cached flow, so a t_o study pays for the shared part once (the rest of the run directory is this fit's own). With
     ``resume`` a checkpoint of ``out_dir`` itself comes first.
     """

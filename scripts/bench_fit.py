@@ -115,7 +115,7 @@ def main(argv=None) -> int:
     ap.add_argument("--branch-from", default=None, metavar="RUN_TEMPLATE",
                     help="start each fit from another run's state just before its first merge (fit(..., branch_from=...)); "
                          "{case} and {seed} are filled in, e.g. runs/bench/runs/{case}-s3o-{seed}. Only the settings the "
-                         "refinement and the polish read (skeleton.t_o, t_u, t_d, min_bone_length, motion.polish_steps, polish_lr_factor) may differ from that run's")
+                         "refinement and the polish read (skeleton.t_o, t_u, t_d, motion.polish_steps, polish_lr_factor) may differ from that run's")
     ap.add_argument("--figure-tag", default="",
                     help="with --t-o: name the repository's figure renders/skeleton_t_o-CASE-TAG-DEVICE.png, so a study "
                          "with other settings (e.g. --set skeleton.t_d=0.25 --figure-tag td25) does not "

@@ -285,8 +285,7 @@ def test_moments_of_rewritten_frames_are_reset(tiny_sequence, tmp_path, monkeypa
 
 
 @pytest.mark.parametrize("bad", ["motion.crossing_window=0", "motion.crossing_ratio=0", "motion.crossing_max_gap=-1",
-                                 "motion.crossing_space=screen", "motion.w_joint=-1",
-                                 "skeleton.min_bone_length=-0.1", "skeleton.min_bone_length=0.5"])
+                                 "motion.crossing_space=screen", "motion.w_joint=-1"])
 def test_bad_crossing_settings_are_refused(tiny_sequence, tmp_path, bad):
     from s3o_warp.errors import ConfigError
     from s3o_warp.fit import Fitter, coarse_model, prepare_data

@@ -308,10 +308,9 @@ def test_a_fit_branched_at_another_t_o_ends_where_a_fresh_fit_at_it_ends(tiny_se
     secs = [r["seconds"] for r in rows]
     assert secs == sorted(secs)
     assert json.loads((c / "skeleton.json").read_text())["bones"] == json.loads((b / "skeleton.json").read_text())["bones"]
-    # joint creation's t_d, the short-bone limit, the refinement's mesh and the polish are read only after the branch
-    # too
-    other = {**over, "skeleton.t_o": 0.5, "skeleton.t_d": 0.05,
-             "skeleton.min_bone_length": 0.03, "motion.polish_steps": 3, "motion.refine_vertices": 2000}
+    # joint creation's t_d, the refinement's mesh and the polish are read only after the branch too
+    other = {**over, "skeleton.t_o": 0.5, "skeleton.t_d": 0.05, "motion.polish_steps": 3,
+             "motion.refine_vertices": 2000}
     fit(tiny_sequence, tmp_path / "d", _cfg(**other), torch.device("cpu"))
     fit(tiny_sequence, tmp_path / "e", _cfg(**other), torch.device("cpu"), branch_from=a)
     assert [json.loads(line)["phase"] for line in open(tmp_path / "e" / "log.jsonl")].count("polish") == 3
@@ -326,7 +325,7 @@ def test_a_branch_refuses_other_settings_and_a_run_without_its_checkpoint(tiny_s
     over = {"coarse.steps": 2, "motion.warmup_steps": 2, "motion.steps": 8, "skeleton.epochs": 4, "skeleton.e1": 1}
     a = tmp_path / "a"
     fit(tiny_sequence, a, _cfg(**over), torch.device("cpu"))
-    with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o, skeleton.t_u, skeleton.t_d, skeleton.min_bone_length, motion.refine_vertices, motion.polish_steps, motion.polish_lr_factor may differ"):
+    with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o, skeleton.t_u, skeleton.t_d, motion.refine_vertices, motion.polish_steps, motion.polish_lr_factor may differ"):
         fit(tiny_sequence, tmp_path / "b", _cfg(**over, **{"motion.lr_bones": 0.123}), torch.device("cpu"), branch_from=a)
     assert not (tmp_path / "b").exists()  # refused before any work
     # a run from before a setting existed ran with its default: that setting does not count as a difference
@@ -575,7 +574,6 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
 
 @pytest.mark.parametrize("bad, names", [
     ("motion.sweep_stride=-1", "sweep_stride"),
-    ("skeleton.min_frames_fraction=1.5", "min_frames_fraction"),
     ("motion.resample_method=manifold", "motion.resample_method"),
     ("motion.resample_max_lost=1.5", "motion.resample_max_lost"),
     ("motion.resample_fallback=manifold", "motion.resample_fallback"),
@@ -584,7 +582,6 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
     ("motion.resample.max_lost=0.5", "set by motion.resample_max_lost"),
     ("motion.polish_steps=-1", "motion.polish_steps"),
     ("motion.polish_lr_factor=0", "motion.polish_lr_factor"),
-    ("skeleton.min_section_vertices=0", "min_section_vertices"),
     ("motion.refine_vertices=-1", "motion.refine_vertices"),
     ("motion.principal_point=centre", "motion.principal_point"),
 ])
@@ -794,22 +791,24 @@ def test_m_step_keeps_the_posed_mesh_and_the_loss(tiny_sequence, tmp_path, epoch
     assert len(f.skel.parents) == f.model.num_bones
 
 
-def test_min_section_vertices_stops_the_m_steps_splits(tiny_sequence, tmp_path):
-    """skeleton.min_section_vertices reaches the upsampling and joint creation: when no bone owns enough vertices
+def test_min_section_vertices_stops_the_m_steps_splits(tiny_sequence, tmp_path, monkeypatch):
+    """mstep.MIN_SECTION_VERTICES reaches the upsampling and joint creation: when no bone owns enough vertices
     for two sections, neither splits one; at the default both do."""
+    from s3o_warp import mstep
     from s3o_warp.mstep import m_step
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
-    sc, B0 = cfg.skeleton, f.model.num_bones
-    sc.min_section_vertices = f.model.verts.shape[0]
+    sc, B0, default = cfg.skeleton, f.model.num_bones, mstep.MIN_SECTION_VERTICES
+    monkeypatch.setattr(mstep, "MIN_SECTION_VERTICES", f.model.verts.shape[0])
     assert not m_step(f.model, f.opt, data, cfg, f.skel, sc.e1) and f.model.num_bones == B0  # no upsampling
-    sc.min_section_vertices = 4
+    monkeypatch.setattr(mstep, "MIN_SECTION_VERTICES", default)
     assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1) and f.model.num_bones > B0
-    sc.t_o, sc.t_d, sc.min_bone_length = 2.0, 0.0, 0.0  # no merge, no pruning; every bone qualifies for a joint
+    sc.t_o, sc.t_d = 2.0, 0.0  # no merge; every bone qualifies for a joint
+    monkeypatch.setattr(mstep, "MIN_BONE_LENGTH", 0.0)  # no pruning
     B1 = f.model.num_bones
-    sc.min_section_vertices = f.model.verts.shape[0]
+    monkeypatch.setattr(mstep, "MIN_SECTION_VERTICES", f.model.verts.shape[0])
     assert not m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones == B1
-    sc.min_section_vertices = 4
+    monkeypatch.setattr(mstep, "MIN_SECTION_VERTICES", default)
     assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones > B1
     assert f.skel.history[-1]["operation"] == "joint"
 
@@ -829,30 +828,33 @@ def test_joint_samples_reach_the_joints_and_the_m_step(tiny_sequence, tmp_path, 
     s = sk.surface_samples(X, f.model.faces.numpy(), f.model.bone_centers.detach().double().numpy(),
                            f.model.precisions().detach().double().numpy(), 4)
     J = sk.joint_positions(X, W, f.skel.joints, t_r=sc.t_r, samples=s)
-    np.testing.assert_allclose(J4, sk.centre_in_body(J, X, f.model.faces.numpy(), max_depth=sc.joint_depth))
+    np.testing.assert_allclose(J4, sk.centre_in_body(J, X, f.model.faces.numpy(), max_depth=mstep.JOINT_DEPTH))
     monkeypatch.setattr(mstep, "JOINT_SAMPLES", 1)
     refresh_joints(f.model, f.skel, sc)
     assert not np.allclose(f.skel.joint_positions, J4)
     monkeypatch.undo()
     split, E = bone_length_variation(f.model, data, f.skel, cfg)
-    np.testing.assert_allclose(E, sk.bone_endpoints(X, W, f.skel.joints, t_r=sc.t_r, far_fraction=sc.far_fraction,
+    np.testing.assert_allclose(E, sk.bone_endpoints(X, W, f.skel.joints, t_r=sc.t_r, far_fraction=mstep.FAR_FRACTION,
                                                     samples=s))
-    sc.t_o, sc.t_d, sc.min_bone_length = 2.0, 0.0, 0.0  # every bone qualifies for a joint
+    sc.t_o, sc.t_d = 2.0, 0.0  # every bone qualifies for a joint
+    monkeypatch.setattr(mstep, "MIN_BONE_LENGTH", 0.0)
     B1 = f.model.num_bones
     assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones > B1
     assert len(f.skel.parents) == f.model.num_bones == len(f.skel.joints) + 1
 
 
-def test_m_step_splits_bones_that_bend_and_keeps_the_loss(tiny_sequence, tmp_path):
+def test_m_step_splits_bones_that_bend_and_keeps_the_loss(tiny_sequence, tmp_path, monkeypatch):
     """Bones whose halves' unexplained motion is above t_u get a joint, end bones (one joint) and inner bones (two
     joints or more) alike (here t_u < 0: every bone seen in enough frames); above every bone's, nothing splits.
     The loss does not jump."""
+    from s3o_warp import mstep
     from s3o_warp.mstep import bone_length_variation, end_bone_bending, m_step
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     sc = cfg.skeleton
     assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1)  # upsampling: the joints the refinement reads
-    sc.t_o, sc.t_d, sc.min_bone_length = 2.0, 1e9, 0.0  # no merge, no pruning, no eq. 6 joint
+    sc.t_o, sc.t_d = 2.0, 1e9  # no merge, no eq. 6 joint
+    monkeypatch.setattr(mstep, "MIN_BONE_LENGTH", 0.0)  # no pruning
     B0 = f.model.num_bones
     count = np.bincount(f.skel.joints.ravel(), minlength=B0)
     _, E = bone_length_variation(f.model, data, f.skel, cfg)
@@ -870,9 +872,10 @@ def test_m_step_splits_bones_that_bend_and_keeps_the_loss(tiny_sequence, tmp_pat
     _assert_no_jump(before, after, loss0, loss1)
 
 
-def test_m_step_prunes_short_bones_and_keeps_the_loss(tiny_sequence, tmp_path):
-    """After e1 the M-step merges bones shorter than skeleton.min_bone_length into their parents; the
+def test_m_step_prunes_short_bones_and_keeps_the_loss(tiny_sequence, tmp_path, monkeypatch):
+    """After e1 the M-step merges bones shorter than mstep.MIN_BONE_LENGTH into their parents; the
     posed mesh and the loss barely move (the short bone's few vertices follow its parent)."""
+    from s3o_warp import mstep
     from s3o_warp import skeleton as sk
     from s3o_warp.mstep import joint_samples, m_step
 
@@ -882,7 +885,7 @@ def test_m_step_prunes_short_bones_and_keeps_the_loss(tiny_sequence, tmp_path):
     E = sk.bone_endpoints(X, W, f.skel.joints, t_r=cfg.skeleton.t_r, samples=joint_samples(f.model))
     L = sk.bone_lengths(E, X) / sk.size_of(X)
     inner = np.flatnonzero(np.bincount(f.skel.parents[f.skel.parents >= 0], minlength=len(L)) > 0)
-    cfg.skeleton.min_bone_length = float(L[inner].min() * 1.001)  # the shortest inner bone is short
+    monkeypatch.setattr(mstep, "MIN_BONE_LENGTH", float(L[inner].min() * 1.001))  # the shortest inner bone is short
     # bones that own no vertex go too, whatever their length (prune_short_bones); the fit's state may hold some
     empty = np.bincount(sk.assign_parts(W), minlength=len(L))[: len(L)] == 0
     empty[inner[np.argmin(L[inner])]] = False
@@ -895,7 +898,7 @@ def test_m_step_prunes_short_bones_and_keeps_the_loss(tiny_sequence, tmp_path):
     after, loss1 = _posed_and_loss(f, frames)
     _assert_no_jump(before, after, loss0, loss1)  # measured: 0.08 % of the diagonal, 2.1 % of the loss (9 -> 8 bones)
     # 0 = the paper: nothing is pruned
-    cfg.skeleton.min_bone_length = 0.0
+    monkeypatch.setattr(mstep, "MIN_BONE_LENGTH", 0.0)
     assert not m_step(f.model, f.opt, data, cfg, f.skel, cfg.skeleton.e1 + 1)
 
 
@@ -925,14 +928,16 @@ def test_the_fits_end_merges_bones_that_own_no_vertex(tiny_sequence, tmp_path):
     assert f.model.num_bones == B0 - 1
 
 
-def test_m_step_does_not_merge_on_a_few_frames(tiny_sequence, tmp_path, caplog):
+def test_m_step_does_not_merge_on_a_few_frames(tiny_sequence, tmp_path, caplog, monkeypatch):
     """A pair that agrees (> t_o) merges when compared on enough frame pairs, and is kept apart, with one log
-    line, when skeleton.min_frames_fraction asks for more frame pairs than it was compared on."""
+    line, when mstep.MIN_FRAMES_FRACTION asks for more frame pairs than it was compared on."""
+    from s3o_warp import mstep
     from s3o_warp.mstep import bone_motion_similarity, merge_min_frames, m_step
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     sc = cfg.skeleton
-    sc.min_bone_length, sc.t_d, sc.t_u = 0.0, 1e9, float("inf")  # merges only
+    sc.t_d, sc.t_u = 1e9, float("inf")  # merges only
+    monkeypatch.setattr(mstep, "MIN_BONE_LENGTH", 0.0)
     S, N = bone_motion_similarity(f.model, data, cfg)
     P, B0 = f.skel.parents, f.model.num_bones
     kids = [b for b in range(B0) if P[b] >= 0 and np.isfinite(S[b, P[b]])]
@@ -942,13 +947,13 @@ def test_m_step_does_not_merge_on_a_few_frames(tiny_sequence, tmp_path, caplog):
     merges = sum(1 for c in kids if S[c, P[c]] > sc.t_o)
     g = copy.deepcopy(f)
     g.opt = g._make_optimizer()
-    sc.min_frames_fraction = 0.0
-    assert merge_min_frames(sc, data.num_frames) == sc.min_frames
+    monkeypatch.setattr(mstep, "MIN_FRAMES_FRACTION", 0.0)
+    assert merge_min_frames(data.num_frames) == mstep.MIN_FRAMES
     assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones == B0 - merges
     gc = g.cfg.skeleton
-    gc.t_o, gc.min_bone_length, gc.t_d, gc.t_u = sc.t_o, 0.0, 1e9, float("inf")
-    gc.min_frames_fraction = min(1.0, (int(N[b, P[b]]) + 0.5) / (data.num_frames - 1))  # one frame pair more
-    assert merge_min_frames(gc, data.num_frames) == int(N[b, P[b]]) + 1
+    gc.t_o, gc.t_d, gc.t_u = sc.t_o, 1e9, float("inf")
+    monkeypatch.setattr(mstep, "MIN_FRAMES_FRACTION", min(1.0, (int(N[b, P[b]]) + 0.5) / (data.num_frames - 1)))
+    assert merge_min_frames(data.num_frames) == int(N[b, P[b]]) + 1  # one frame pair more than b was compared on
     with caplog.at_level(logging.INFO, logger="s3o_warp.mstep"):
         m_step(g.model, g.opt, data, g.cfg, g.skel, gc.e1 + 1)
     assert g.model.num_bones == B0 - sum(1 for c in kids if S[c, P[c]] > sc.t_o and N[c, P[c]] > N[b, P[b]])
