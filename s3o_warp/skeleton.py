@@ -370,7 +370,7 @@ def joint_positions(verts, weights, pairs, t_r: float = 0.4, fallback_count: int
 
 def size_of(verts) -> float:
     """The bbox diagonal of ``(N, 3)`` canonical vertices: the unit of the M-step's relative lengths
-    (``joint_depth``, ``min_bone_length``)."""
+    (``s3o_warp.mstep.JOINT_DEPTH``, ``MIN_BONE_LENGTH``)."""
     X = _np(verts)
     return float(np.linalg.norm(X.max(0) - X.min(0)))
 

@@ -646,7 +646,7 @@ def merge_bones(
     The merged bone is ``B~ = sum_i w_i B_i`` for the centres C and precisions Q, with
     ``w = softmax(S / temperature)`` over the members' weight masses ``S_i = sum_n W[n, i]``. The paper
     writes ``w' = exp(S') / (exp(S') + exp(S''))``, which overflows for thousands of vertices; the
-    softmax in log space is the same number without overflow (DESIGN correction). ``temperature = 1``
+    softmax in log space is the same number without overflow. ``temperature = 1``
     is the paper's formula (then the larger part nearly always wins outright); larger values blend.
     The merged bone's motion is the same blend of its members' motions; its length comes from its
     joints afterwards (:func:`s3o_warp.skeleton.bone_lengths`).
