@@ -153,107 +153,20 @@ class SkeletonConfig:
     t_o: float = 0.95
     """Merge bones whose flow-derived motion directions have cosine > t_o in every frame (0.99 finer, 0.90 coarser)."""
     t_d: float = 0.15
-    """Create a joint in a bone whose length varies over frames by more than t_d of its median length (0.25 until
-    session 31; 0.15 gives the legs more joints: docs/results.md, "Session 31")."""
+    """Create a joint in a bone whose length varies over frames by more than t_d of its median length (the paper's
+    0.25 gives the legs fewer joints)."""
     t_r: float = 0.4
     """Joint position: mean of the vertices with both bones' weights >= t_r."""
-    joint_samples: int = 4
-    """Not in the paper: take the joints (t_r) and the bone ends of eq. 6 over points spread over the surface,
-    each face cut into joint_samples**2 small triangles, with the Gaussian bones' weights there, instead of over
-    the vertices alone (1 = the vertices, the paper, the default until session 34). On a coarse mesh the band
-    where two bones' weights both reach t_r often lies between a thin leg's vertices."""
-    split_end_bones: bool = True
-    """Not in the paper: also create a joint in an end bone (one joint, a leg's shin and paw) whose part's two
-    halves move relative to each other in a way the one rigid bone does not reproduce (median over the frames
-    of the unexplained share above t_u). Eq. 6 cannot split an end bone: its length runs from its joint to its
-    far end, which both move with the bone, so it never varies. false = eq. 6 alone (the paper)."""
-    split_inner_bones: bool = True
-    """Not in the paper: split_end_bones's test on inner bones too (two joints or more), cut half way between
-    their two farthest joints (false until session 34: docs/results.md, "Session 34"). Eq. 6 sees a knee inside
-    an inner bone only through its end-to-end length, which a 30-degree bend half way along shortens by 3 % (t_d
-    is 15 %); a small hoof or paw bone below a long leg bone makes that leg bone an inner one."""
     t_u: float = 0.4
-    """split_end_bones: the unexplained share of the halves' relative image motion, |observed - fitted| /
-    max(|observed|, |fitted|), median over the frames both halves are seen in, above which an end bone gets a
-    joint (0 = the fit reproduces the halves' motion, 0.5 = a knee the fit bends half way, 1 and above = it
-    does not follow at all)."""
-    min_bone_length: float = 0.015
-    """Not in the paper: after each merge, inner bones shorter than this fraction of the canonical mesh's bbox
-    diagonal (and bones that own no vertex) are merged into their parent, and joint creation never leaves a half
-    shorter than it (0 = the paper: no limit; without it, hips and shoulders collect knots of ever shorter bones).
-    Short end bones (tail tips, ears, hooves) are kept."""
-    prune_empty_at_end: bool = True
-    """Not in the paper: when the fit ends, bones that own no vertex (the fit moved their region to a neighbour
-    after the last M-step, or a split left them none) are merged into their parent before the joints are
-    placed, as the M-step does after each merge (min_bone_length). Such a bone moves nothing, and its joints
-    fall back to far-apart borders (a leg's top joint at the tail's base). false = export them as they are."""
-    mirror: bool = False
-    """Not in the paper: a bone and its mirror partner across the lift's symmetry plane get the same refinement
-    decisions (merge, short-bone pruning, joint creation), taken by whichever of the two is seen moving in more
-    frames. A far-side leg is seen less than its partner, so on its own it keeps or loses joints by what little
-    the camera saw of it. false = each bone decides on its own (the paper)."""
-    mirror_tol: float = 0.05
-    """Bones are mirror partners when one's part centroid reflected lies within this fraction of the canonical
-    mesh's bbox diagonal of the other's (mutual nearest, opposite sides of the plane)."""
-    centre_joints: bool = True
-    """Then move each joint into the body: to the middle of a thin limb's cross-section, at most joint_depth
-    below the surface of a thick part (the mean above sits on the surface when the shared vertices are on
-    one side of a limb); false = the paper's mean as is."""
-    joint_depth: float = 0.03
-    """Deepest a joint is moved below the surface, as a fraction of the canonical mesh's bbox diagonal."""
-    growth_factor: float = 2.0
-    """Grow an end part whose extent passed growth_factor x its initial extent."""
-    growth_sections: int = 2
-    """Sections k a grown end part is split into."""
-    sharpness: float = 0.6667
-    """Precision of a new bone = sharpness / variance of its section's vertices."""
+    """Not in the paper: also create a joint in a bone whose part's two halves move relative to each other in a way
+    the one rigid bone does not reproduce: when the unexplained share of the halves' relative image motion,
+    |observed - fitted| / max(|observed|, |fitted|), median over the frames both halves are seen in, is above t_u
+    (0 = the fit reproduces the halves' motion, 0.5 = a knee the fit bends half way, 1 and above = it does not
+    follow at all). Eq. 6 cannot split an end bone (one joint: a leg's shin and paw), whose length runs from its
+    joint to its far end, which both move with the bone, and sees a knee inside an inner bone only through its
+    end-to-end length, which a 30-degree bend half way along shortens by 3 % (t_d is 15 %)."""
     max_bones: int = 40
     """Never grow the skeleton beyond this many bones."""
-    upsample_min_extent: float = 0.0
-    """Upsampling splits only bones whose extent is at least this fraction of the largest."""
-    min_section_vertices: int = 4
-    """Growth, upsampling and joint creation split a bone only when each new bone would own at least this many
-    vertices (its part: the vertices it weighs most)."""
-    merge_mode: str = "greedy"
-    """greedy (each bone merges at most once per M-step) or components (all agreeing neighbours at once)."""
-    merge_temperature: float = 1.0
-    """Temperature of the log-space softmax of the merge weights (sum of skinning weights per bone)."""
-    min_visible: float = 0.1
-    """Bone flow: skip frames where less than this fraction of a bone's weight is visible."""
-    min_mass: float = 3.0
-    """Bone flow: skip frames where a bone's visible weight mass (in vertices) is below this."""
-    min_flow: float = 0.5
-    """Motion similarity: frames where both bones move less than this (crop pixels) say nothing about direction."""
-    motion_frame: str = "crop"
-    """Which motion of the bones eq. 8 compares. crop: the flow between the two crops. frame: the motion in the
-    frame, in crop-t pixels; each crop box follows its own frame's mask, so the crop flow adds the boxes' shift
-    and zoom to every bone (on the 120-degree Fox at 192 px: a median 3.5 px shift and 1.9 px of zoom at the
-    crop's edge per frame, as large as a walking leg's motion). body: the articulated motion, the frame motion
-    less what the root's rigid motion and the camera give each vertex, and two bones that both stay with the
-    body (both under min_flow) count as moving together; a camera orbiting a rigid part moves its two ends in
-    different image directions, which crop and frame read as disagreement. Not in the paper (no crops, eq. 8
-    on the raw flow)."""
-    merge_quantile: float = 0.0
-    """Motion similarity over frames: this quantile of the per-frame cosines instead of their minimum (0 = the
-    paper's "in every frame"; 0.1 = in 90 % of the frames, so flow noise on parts that barely move in the crop
-    does not veto every merge)."""
-    still_flow: float = 0.01
-    """motion_frame=body: a bone whose articulated motion in a frame is under this fraction of the crop side
-    (1 px at 96 px crops) stays with the body in that frame, and two such bones move together (it replaces
-    min_flow there: the articulated motion of a part that does not articulate is the flow's and the fit's
-    error, about a pixel at 96 px, not zero). On the horse's fast fit 0.01 gives 15, 15 and 11 bones at t_o
-    0.99, 0.95 and 0.90; 0.02 gave 12, 11 and 10 with the body, neck, head and tail merged into one bone. On
-    the built-in quadruped's fast fit 0.01 still merges the body, neck and head (15 bones at every t_o)."""
-    min_frames: int = 2
-    """Motion similarity: bone pairs with fewer usable frames are never merged."""
-    min_frames_fraction: float = 0.25
-    """Not in the paper: nor are pairs compared on fewer than this fraction of the frame pairs (the larger of
-    the two minimums applies; 0 = min_frames alone). "Moves together in every frame" read off a few frames is
-    no evidence: on the 120-degree Fox (seed 1) a far-side hind thigh seen moving in 6 of 47 frame pairs agreed
-    with its shin there (0.957) and the two merged into one bone with no knee; the other bones are seen in
-    21-45."""
-    far_fraction: float = 0.1
-    """Bone endpoints of a one-joint bone: mean of its farthest fraction of part vertices."""
     virtual_bones: int = 25
     """Bone count of the virtual-bones baseline."""
 

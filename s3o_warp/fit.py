@@ -35,8 +35,7 @@ CHECKPOINT_VERSION = 3
 checkpoint of another version is refused (its run must be refit)."""
 BRANCH_CHECKPOINT = "branch.pt"  # in <run>/checkpoints: the state before the first M-step that reads t_o
 BRANCH_LOG = "branch.log.jsonl"
-BRANCH_MAY_DIFFER = ("skeleton.t_o", "skeleton.merge_quantile", "skeleton.t_u", "skeleton.split_end_bones",
-                     "skeleton.t_d", "skeleton.min_bone_length", "skeleton.split_inner_bones")
+BRANCH_MAY_DIFFER = ("skeleton.t_o", "skeleton.t_u", "skeleton.t_d")
 """The settings a branched fit may change: the refinement reads them only after the branch (and output.*, preset:
 no effect on the fit)."""
 
@@ -352,34 +351,14 @@ class Fitter:
         from s3o_warp.kernels.regularisers import mesh_edges
 
         self.data, self.cfg, self.run_dir, self.device = data, cfg, Path(run_dir), device
-        if not 0.0 <= cfg.skeleton.merge_quantile < 1.0:
-            raise ConfigError(f"skeleton.merge_quantile must be in [0, 1) (0 = every frame), got {cfg.skeleton.merge_quantile}")
-        if not 0 <= cfg.skeleton.mirror_tol < 0.5:
-            raise ConfigError(f"skeleton.mirror_tol must be in [0, 0.5) (a fraction of the object's size), "
-                              f"got {cfg.skeleton.mirror_tol}")
-        if not 0 <= cfg.skeleton.min_bone_length < 0.5:
-            raise ConfigError(f"skeleton.min_bone_length must be in [0, 0.5) (a fraction of the object's size; 0 = off), "
-                              f"got {cfg.skeleton.min_bone_length}")
         if cfg.motion.w_joint < 0:
             raise ConfigError(f"motion.w_joint must be >= 0 (0 = off), got {cfg.motion.w_joint}")
-        if cfg.skeleton.motion_frame not in ("crop", "frame", "body") or not 0 < cfg.skeleton.still_flow < 1:
-            raise ConfigError(f"skeleton.motion_frame must be 'crop', 'frame' or 'body' and skeleton.still_flow in (0, 1) "
-                              f"(a fraction of the crop side); got {cfg.skeleton.motion_frame!r}, {cfg.skeleton.still_flow}")
         if cfg.motion.resample_vertices < 0:
             raise ConfigError(f"motion.resample_vertices must be >= 0 (a vertex count; 0 = the coarse mesh's), got "
                               f"{cfg.motion.resample_vertices}")
         if cfg.motion.principal_point not in ("frame", "shared"):
             raise ConfigError(f"motion.principal_point must be 'frame' (one per frame, LASR's) or 'shared' (one for the "
                               f"video), got {cfg.motion.principal_point!r}")
-        if cfg.skeleton.min_section_vertices < 1:
-            raise ConfigError(f"skeleton.min_section_vertices must be >= 1 (vertices each new bone of a split owns), "
-                              f"got {cfg.skeleton.min_section_vertices}")
-        if cfg.skeleton.joint_samples < 1:
-            raise ConfigError(f"skeleton.joint_samples must be >= 1 (1 = joints over the vertices, k = over each face's "
-                              f"k x k grid), got {cfg.skeleton.joint_samples}")
-        if not 0 <= cfg.skeleton.min_frames_fraction <= 1:
-            raise ConfigError(f"skeleton.min_frames_fraction must be in [0, 1] (a fraction of the frame pairs; 0 = "
-                              f"skeleton.min_frames alone), got {cfg.skeleton.min_frames_fraction}")
         self.coarse = coarse_res
         self.model = S3OModel(coarse_res.init).to(device)
         self.edges = mesh_edges(self.model.faces).to(device)
@@ -761,12 +740,12 @@ class Fitter:
         self.save_checkpoint()
 
     def final_skeleton(self) -> None:
-        """The shape moved since the last M-step: bones left owning no vertex go (``skeleton.prune_empty_at_end``),
-        and the joints are placed on the final mesh."""
+        """The shape moved since the last M-step: bones left owning no vertex go (not in the paper), and the joints
+        are placed on the final mesh."""
         from s3o_warp.mstep import prune_empty_bones, refresh_joints
 
         sc = self.cfg.skeleton
-        if not (sc.method == "s3o" and sc.prune_empty_at_end and prune_empty_bones(self.model, self.opt, self.skel, sc)):
+        if not (sc.method == "s3o" and prune_empty_bones(self.model, self.opt, self.skel, sc)):
             refresh_joints(self.model, self.skel, sc)
 
     def resolve_crossings(self) -> list[int]:
@@ -938,7 +917,7 @@ class Fitter:
         from s3o_warp.mstep import m_step
 
         epoch = self.step // self.steps_per_epoch(n) - 1
-        if m_step(self.model, self.opt, self.data, self.cfg, self.skel, epoch, sym_plane=self.sym_plane):
+        if m_step(self.model, self.opt, self.data, self.cfg, self.skel, epoch):
             self._good = None  # shapes changed: the NaN roll-back target is taken anew
         every = self.cfg.motion.resample_epochs
         if every > 0 and (epoch + 1) % every == 0:
@@ -1131,7 +1110,7 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
     ``sequence_dir`` is a sequence folder, a DAVIS root (with ``name``), a DAVIS sequence folder, or a
     video file / frame folder with a separate ``masks`` folder (see ``s3o_warp.video.open_sequence``).
     ``branch_from``: a finished or running fit of the same sequence whose settings differ from ``cfg`` only in
-    ``skeleton.t_o``, ``merge_quantile``, ``t_u``, ``split_end_bones``, ``split_inner_bones``, ``t_d`` or ``min_bone_length`` (:data:`BRANCH_MAY_DIFFER`: read only from the branch on); the fit starts from its ``checkpoints/branch.pt`` (the state just
+    ``skeleton.t_o``, ``t_u`` or ``t_d`` (:data:`BRANCH_MAY_DIFFER`: read only from the branch on); the fit starts from its ``checkpoints/branch.pt`` (the state just
     before the first merge) and its cached flow, so a t_o study pays for the shared part once (the rest of the run directory is this fit's own). With
     ``resume`` a checkpoint of ``out_dir`` itself comes first.
     """

@@ -5,28 +5,21 @@ Called by the fit between epochs of the joint phase. For epoch e (0-based, ``e1`
 - e < e1: bone shifting (eq. 5) and skeleton growth at stretched end parts;
 - e == e1: one skeleton upsampling;
 - e > e1: physically constrained refinement: merge neighbouring bones whose flow-derived motion
-  directions agree in every frame (eq. 8, cosine > t_o), merge bones shorter than ``min_bone_length``
+  directions agree in every frame (eq. 8, cosine > t_o), merge bones shorter than :data:`MIN_BONE_LENGTH`
   into their parents (not in the paper), and split bones whose length varies over the frames (eq. 6
-  corrected) into two bones joined at a new joint, and (``skeleton.split_end_bones``, not in the paper) end
-  bones whose two halves move in a way the one rigid bone does not reproduce (:func:`end_bone_bending`).
+  corrected) into two bones joined at a new joint, and (not in the paper) bones whose two halves move in a
+  way the one rigid bone does not reproduce (:func:`end_bone_bending`).
 
-The motion compared in eq. 8 is, by ``skeleton.motion_frame``: the flow between the two crops (``crop``, the
-default), the motion in the frame with the crop boxes' own shift and zoom taken out (``frame``), or the
-articulated motion, the flow less what the root's rigid motion and the camera give each vertex (``body``; then
-two bones that both stay with the body, under ``skeleton.still_flow``, move together). Each merge step logs the
-similarity of every bone to its parent, the numbers t_o is compared with.
-
-With ``skeleton.mirror`` (not in the paper) the refinement takes the same decisions for a bone and its mirror
-partner across the lift's symmetry plane (:func:`s3o_warp.skeleton.mirror_partners`), from whichever of the
-two is seen moving in more frames: a pair's motion similarity, a bone's length for the pruning and whether
-it gets a joint. A far-side leg is seen in fewer frames than its partner: its similarity to a neighbour is a
-minimum over fewer frames (or, seen in fewer than ``min_frames`` or ``min_frames_fraction`` of the frame
-pairs, never allows a merge), so on its own it
-keeps or loses joints by what little of it the camera saw.
+The motion compared in eq. 8 is the flow between the two crops. Each merge step logs the similarity of every
+bone to its parent, the numbers t_o is compared with.
 
 After every edit the joints (bone pairs of the kinematic tree) are re-derived and placed at the mean of
 the vertices both bones weigh >= t_r. Per-frame motion and optimiser state are carried over by
 ``skeleton.apply_edit`` so the loss does not jump.
+
+The thresholds a user sets are in ``SkeletonConfig`` (t_o, t_d, t_r, t_u, e1, max_bones); the tuning
+constants below are the M-step's own. Lengths and depths are fractions of the canonical mesh's bbox diagonal
+(:func:`s3o_warp.skeleton.size_of`), flows crop pixels.
 """
 
 from __future__ import annotations
@@ -41,6 +34,44 @@ import torch
 from s3o_warp import skeleton as sk
 
 log = logging.getLogger(__name__)
+
+JOINT_SAMPLES = 4
+"""Not in the paper: the joints (t_r) and the bone ends of eq. 6 are taken over points spread over the canonical
+surface, each face cut into JOINT_SAMPLES**2 small triangles, with the Gaussian bones' weights there, instead of
+over the vertices alone (1, the paper). On a coarse mesh the band where two bones' weights both reach t_r often
+lies between a thin leg's vertices."""
+JOINT_DEPTH = 0.03
+"""Deepest a joint is moved below the surface when it is centred in the body (:func:`refresh_joints`)."""
+MIN_BONE_LENGTH = 0.015
+"""Not in the paper: after each merge, inner bones shorter than this (and bones that own no vertex) are merged into
+their parent, and joint creation never leaves a half shorter than it (0 = the paper: no limit; without it, hips and
+shoulders collect knots of ever shorter bones). Short end bones (tail tips, ears, hooves) are kept."""
+FAR_FRACTION = 0.1
+"""Bone ends of a one-joint bone: the far end is the mean of its farthest fraction of part vertices."""
+GROWTH_FACTOR = 2.0
+"""Grow an end part whose extent passed this many times its initial extent (paper: 2)."""
+GROWTH_SECTIONS = 2
+"""Sections a grown end part is split into."""
+SHARPNESS = 0.6667
+"""Precision of a new bone = SHARPNESS / variance of its section's vertices (2/3 to four digits)."""
+MIN_SECTION_VERTICES = 4
+"""Growth, upsampling and joint creation split a bone only when each new bone would own at least this many
+vertices (its part: the vertices it weighs most)."""
+MERGE_TEMPERATURE = 1.0
+"""Temperature of the log-space softmax of the merge weights (sum of skinning weights per bone; 1 = the paper)."""
+MIN_VISIBLE = 0.1
+"""Bone flow: skip frames where less than this fraction of a bone's weight is visible."""
+MIN_MASS = 3.0
+"""Bone flow: skip frames where a bone's visible weight mass (in vertices) is below this."""
+MIN_FLOW = 0.5
+"""Motion similarity: frames where both bones move less than this (crop pixels) say nothing about direction."""
+MIN_FRAMES = 2
+"""Motion similarity: bone pairs with fewer usable frames are never merged."""
+MIN_FRAMES_FRACTION = 0.25
+"""Not in the paper: nor are pairs compared on fewer than this fraction of the frame pairs (the larger of the two
+minimums applies; 0 = MIN_FRAMES alone). "Moves together in every frame" read off a few frames is no evidence: on
+the 120-degree Fox (seed 1) a far-side hind thigh seen moving in 6 of 47 frame pairs agreed with its shin there
+(0.957) and the two merged into one bone with no knee; the other bones are seen in 21-45."""
 
 
 @dataclass
@@ -83,33 +114,32 @@ def _q(model) -> np.ndarray:
     return model.precisions().detach().cpu().double().numpy()
 
 
-def joint_samples(model, sc) -> sk.SurfaceSamples | None:
-    """The points over the canonical surface the joints are taken over (``skeleton.joint_samples``), or None
-    (the vertices)."""
-    if sc.joint_samples <= 1:
-        return None
+def joint_samples(model) -> sk.SurfaceSamples | None:
+    """The points over the canonical surface the joints are taken over (:data:`JOINT_SAMPLES`), or None (the
+    vertices)."""
     return sk.surface_samples(model.verts.detach().cpu().double().numpy(), model.faces.detach().cpu().numpy(),
-                              model.bone_centers.detach().cpu().double().numpy(), _q(model), sc.joint_samples)
+                              model.bone_centers.detach().cpu().double().numpy(), _q(model), JOINT_SAMPLES)
 
 
 def refresh_joints(model, state: SkeletonState, sc) -> None:
     """Joints = the kinematic tree's (parent, child) pairs, placed at the mean of the shared vertices
-    (``sc.t_r``), then (``sc.centre_joints``) moved into the body (:func:`s3o_warp.skeleton.centre_in_body`).
-    ``sc`` is the run's ``SkeletonConfig``."""
+    (``sc.t_r``), then moved into the body (:func:`s3o_warp.skeleton.centre_in_body`; not in the paper): to the
+    middle of a thin limb's cross-section, at most :data:`JOINT_DEPTH` below the surface of a thick part (the mean
+    sits on the surface when the shared vertices are on one side of a limb). ``sc`` is the run's
+    ``SkeletonConfig``."""
     X, W = _xw(model)
     state.joints = sk.tree_joints(state.parents)
     if not len(state.joints):
         state.joint_positions = np.zeros((0, 3))
         return
-    J = sk.joint_positions(X, W, state.joints, t_r=sc.t_r, samples=joint_samples(model, sc))
-    if sc.centre_joints:
-        J = sk.centre_in_body(J, X, model.faces.detach().cpu().numpy(), max_depth=sc.joint_depth)
-    state.joint_positions = J
+    J = sk.joint_positions(X, W, state.joints, t_r=sc.t_r, samples=joint_samples(model))
+    state.joint_positions = sk.centre_in_body(J, X, model.faces.detach().cpu().numpy(), max_depth=JOINT_DEPTH)
 
 
 def prune_empty_bones(model, opt, state: SkeletonState, sc, epoch: int = -1) -> bool:
     """Merge the bones that own no vertex into their parents (:func:`s3o_warp.skeleton.prune_short_bones` with
-    no length limit), carrying motion and optimiser state over; the fit's last step (``skeleton.prune_empty_at_end``).
+    no length limit), carrying motion and optimiser state over; the fit's last step, not in the paper: such a bone
+    moves nothing, and its joints fall back to far-apart borders (a leg's top joint at the tail's base).
     ``epoch`` only labels the history entry and the log line (-1: after the last epoch). Returns whether the
     skeleton changed."""
     if not len(state.joints):
@@ -117,15 +147,13 @@ def prune_empty_bones(model, opt, state: SkeletonState, sc, epoch: int = -1) -> 
     return _apply(model, opt, state, _prune_edit(model, state, sc, 0.0), "prune empty (end)", epoch, sc)
 
 
-def _prune_edit(model, state: SkeletonState, sc, min_length: float, mirror=None):
+def _prune_edit(model, state: SkeletonState, sc, min_length: float):
     """:func:`s3o_warp.skeleton.prune_short_bones` on the model's canonical bone lengths; ``min_length`` a fraction
-    of the mesh's size; ``mirror`` (partners, seen) takes each length from the better-seen of a bone and its partner."""
+    of the mesh's size."""
     X, W = _xw(model)
     C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
-    L = sk.bone_lengths(sk.bone_endpoints(X, W, state.joints, t_r=sc.t_r, far_fraction=sc.far_fraction,
-                                          samples=joint_samples(model, sc)), X)
-    if mirror is not None:
-        L = _from_mirror(L, mirror[1], mirror[0], "lengths")
+    L = sk.bone_lengths(sk.bone_endpoints(X, W, state.joints, t_r=sc.t_r, far_fraction=FAR_FRACTION,
+                                          samples=joint_samples(model)), X)
     return sk.prune_short_bones(L, min_length * sk.size_of(X), W, C, Q, state.parents, extents=state.extents)
 
 
@@ -143,10 +171,10 @@ def _apply(model, opt, state: SkeletonState, edit, what: str, epoch: int, sc) ->
     return True
 
 
-def merge_min_frames(sc, num_frames: int) -> int:
-    """Fewest frame pairs a bone pair must be compared on before it may merge: the larger of
-    ``skeleton.min_frames`` and ``skeleton.min_frames_fraction`` of the ``num_frames - 1`` pairs."""
-    return max(int(sc.min_frames), int(math.ceil(float(sc.min_frames_fraction) * max(num_frames - 1, 0) - 1e-9)))
+def merge_min_frames(num_frames: int) -> int:
+    """Fewest frame pairs a bone pair must be compared on before it may merge: the larger of :data:`MIN_FRAMES`
+    and :data:`MIN_FRAMES_FRACTION` of the ``num_frames - 1`` pairs."""
+    return max(MIN_FRAMES, int(math.ceil(MIN_FRAMES_FRACTION * max(num_frames - 1, 0) - 1e-9)))
 
 
 def _pair_windows(model, T: int, batch_frames: int):
@@ -167,39 +195,19 @@ def bone_motion_similarity(model, data, cfg) -> tuple[np.ndarray, np.ndarray]:
     from s3o_warp.kernels.visibility import vertex_visibility
 
     sc = cfg.skeleton
-    if sc.motion_frame not in ("crop", "frame", "body"):
-        from s3o_warp.errors import ConfigError
-
-        raise ConfigError(f"skeleton.motion_frame must be 'crop', 'frame' or 'body', got {sc.motion_frame!r}")
-    from s3o_warp.geometry import project
-
     W = model.skinning()
     FB, valid = [], []
     for fr in _pair_windows(model, data.num_frames, cfg.motion.batch_frames):
         v = model(fr, weights=W)
         K = model.intrinsics_crop(fr)
         vis = vertex_visibility(v, model.faces)
-        M = rigid = None
-        if sc.motion_frame in ("frame", "body"):  # A_t^-1 A_{t+1}: crop t+1 into crop t (the boxes' jitter out)
-            A = data.crop_to_frame[fr].to(device=v.device, dtype=torch.float64)
-            M = torch.linalg.solve(A[:-1], A[1:])
-        if sc.motion_frame == "body":  # frame t's articulated pose carried by frame t+1's root and camera
-            RT = model.root_rt(fr)
-            R, tr = RT[:, :, :3], RT[:, None, :, 3]
-            obj = torch.einsum("tji,tnj->tni", R[:-1], v[:-1] - tr[:-1])  # the posed v back in the object frame
-            rigid = project(torch.einsum("tij,tnj->tni", R[1:], obj) + tr[1:], K[1:])
         fb, ok = sk.bone_flow(v, K, data.flow_fwd[fr[:-1]], vis, W, conf=data.conf_fwd[fr[:-1]],
-                              min_visible=sc.min_visible, min_mass=sc.min_mass, pair_transform=M,
-                              rigid_next=rigid)
+                              min_visible=MIN_VISIBLE, min_mass=MIN_MASS)
         FB.append(fb)
         valid.append(ok)
     FB = torch.cat(FB, 0)
     valid = torch.cat(valid, 0)
-    body = sc.motion_frame == "body"
-    S, N = sk.motion_similarity(FB, valid, min_flow=sc.still_flow * data.crop_size if body else sc.min_flow,
-                                min_frames=sc.min_frames,
-                                quantile=sc.merge_quantile, return_frames=True,
-                                static_agree=body)
+    S, N = sk.motion_similarity(FB, valid, min_flow=MIN_FLOW, min_frames=MIN_FRAMES, return_frames=True)
     return S.cpu().double().numpy(), N.cpu().numpy()
 
 
@@ -208,22 +216,21 @@ def bone_length_variation(model, data, state: SkeletonState, cfg) -> tuple[np.nd
     """Which bones' lengths vary over frames (eq. 6 corrected), ``(B,)`` bool, and the endpoints used."""
     sc = cfg.skeleton
     X, W = _xw(model)
-    E = sk.bone_endpoints(X, W, state.joints, t_r=sc.t_r, far_fraction=sc.far_fraction,
-                          samples=joint_samples(model, sc))
+    E = sk.bone_endpoints(X, W, state.joints, t_r=sc.t_r, far_fraction=FAR_FRACTION,
+                          samples=joint_samples(model))
     lengths = []
     Wt = model.skinning()
     for s in range(0, data.num_frames, cfg.motion.batch_frames):
         fr = torch.arange(s, min(s + cfg.motion.batch_frames, data.num_frames), device=model.verts.device)
         lengths.append(sk.bone_lengths_per_frame(E, model.posed_object(fr, weights=Wt).cpu().double().numpy()))
-    return sk.create_joints(np.concatenate(lengths, 0), t_d=sc.t_d, min_length=sc.min_bone_length * sk.size_of(X)), E
+    return sk.create_joints(np.concatenate(lengths, 0), t_d=sc.t_d, min_length=MIN_BONE_LENGTH * sk.size_of(X)), E
 
 
 @torch.no_grad()
 def end_bone_bending(model, data, state: SkeletonState, E: np.ndarray, cfg) -> np.ndarray:
     """Per bone, how much of the relative motion of its part's two halves the fit leaves unexplained
-    (:func:`s3o_warp.skeleton.unexplained_motion`), ``(B,)``; NaN for bones that are not tested (end bones, one
-    joint, with ``skeleton.split_end_bones``; inner bones, two joints or more, with ``split_inner_bones``), are
-    shorter than twice ``skeleton.min_bone_length``, cannot be cut or are seen in too few frames.
+    (:func:`s3o_warp.skeleton.unexplained_motion`), ``(B,)``; NaN for bones that have no joint, are shorter than
+    twice :data:`MIN_BONE_LENGTH`, cannot be cut or are seen in too few frames.
 
     Not in the paper: an end bone's length runs from its joint to its far end, which both move with the bone,
     so eq. 6 never gives it a joint; a knee inside it shows in the flow instead, as two halves that the one
@@ -240,12 +247,11 @@ def end_bone_bending(model, data, state: SkeletonState, E: np.ndarray, cfg) -> n
     if not len(state.joints):
         return out
     count = np.bincount(np.asarray(state.joints).ravel(), minlength=B)
-    ends = ((count == 1) if sc.split_end_bones else False) | ((count >= 2) if sc.split_inner_bones else False)
-    ends &= sk.bone_lengths(E, X) >= 2.0 * sc.min_bone_length * sk.size_of(X)
+    ends = (count >= 1) & (sk.bone_lengths(E, X) >= 2.0 * MIN_BONE_LENGTH * sk.size_of(X))
     if not ends.any():
         return out
     C = model.bone_centers.detach().cpu().double().numpy()
-    bones, W2 = sk.bone_halves(X, W, C, state.parents, E, ends, min_section_vertices=sc.min_section_vertices)
+    bones, W2 = sk.bone_halves(X, W, C, state.parents, E, ends, min_section_vertices=MIN_SECTION_VERTICES)
     if not len(bones):
         return out
     W2 = torch.as_tensor(W2, dtype=torch.float32, device=model.verts.device)
@@ -255,60 +261,22 @@ def end_bone_bending(model, data, state: SkeletonState, E: np.ndarray, cfg) -> n
         v = model(fr, weights=Wt)
         K = model.intrinsics_crop(fr)
         fb, ok, gb = sk.bone_flow(v, K, data.flow_fwd[fr[:-1]], vertex_visibility(v, model.faces), W2,
-                                  conf=data.conf_fwd[fr[:-1]], min_visible=sc.min_visible, min_mass=sc.min_mass,
+                                  conf=data.conf_fwd[fr[:-1]], min_visible=MIN_VISIBLE, min_mass=MIN_MASS,
                                   predicted=vertex_flow_crop(v, K))
         FB.append(fb)
         GB.append(gb)
         valid.append(ok)
     r, n = sk.unexplained_motion(torch.cat(FB), torch.cat(GB), torch.cat(valid),
-                                 np.arange(2 * len(bones)).reshape(-1, 2), min_flow=sc.min_flow,
-                                 min_frames=merge_min_frames(sc, data.num_frames))
+                                 np.arange(2 * len(bones)).reshape(-1, 2), min_flow=MIN_FLOW,
+                                 min_frames=merge_min_frames(data.num_frames))
     out[bones] = r
     log.info("M-step: unexplained motion of the bones' halves: %s (t_u %.3g)",
              " ".join(f"{b}:{x:.3f}/{k}" for b, x, k in zip(bones.tolist(), r, n.tolist())), sc.t_u)
     return out
 
 
-def _mirror(model, cfg, sym_plane, seen: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """The bones' mirror partners ``m`` (:func:`s3o_warp.skeleton.mirror_partners` of the parts' centroids)
-    and ``seen``, the frames each bone is seen moving; None when mirroring is off."""
-    sc = cfg.skeleton
-    if sym_plane is None or not sc.mirror:
-        return None
-    X, W = _xw(model)
-    C = model.bone_centers.detach().cpu().double().numpy()
-    # the parts' centroids (eq. 5), not the free centres: those drift off their parts after the shifting ends
-    m = sk.mirror_partners(sk.shift_bones(X, W, C), sym_plane, sc.mirror_tol * sk.size_of(X))
-    paired = np.flatnonzero(m > np.arange(len(m)))
-    log.info("M-step: %d mirrored bone pairs of %d bones: %s", len(paired), len(m),
-             [(int(b), int(m[b])) for b in paired])
-    return m, seen
-
-
-def _seen_after(mirror, edit) -> np.ndarray | None:
-    """The frames each bone of an applied edit is seen moving: the best-seen of the old bones it came from
-    (no second pass over the flow)."""
-    if mirror is None:
-        return None
-    return np.array([max(mirror[1][i] for i, _w in src) for src in edit.sources], dtype=mirror[1].dtype)
-
-
-def _from_mirror(own: np.ndarray, seen: np.ndarray, m: np.ndarray, what: str) -> np.ndarray:
-    """Per bone: its mirror partner's value where the partner is seen in more frames, its own otherwise."""
-    take = seen[m] > seen
-    differ = np.flatnonzero(take & (own[m] != own))
-    if len(differ):
-        log.info("M-step: %s of bones %s taken from their better-seen mirror partners %s", what, differ.tolist(),
-                 m[differ].tolist())
-    return np.where(take, own[m], own)
-
-
-def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int, sym_plane=None) -> bool:
-    """One M-step after epoch ``epoch`` of the joint phase; returns whether the skeleton changed.
-
-    ``sym_plane``: the lift's symmetry plane ``(normal, offset)`` in the object frame; with
-    ``skeleton.mirror`` the refinement decides for a bone and its mirror partner together (module docstring).
-    """
+def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int) -> bool:
+    """One M-step after epoch ``epoch`` of the joint phase; returns whether the skeleton changed."""
     sc = cfg.skeleton
     if sc.method != "s3o":
         return False
@@ -329,29 +297,28 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int, sym_plane=No
             X, W = _xw(model)
             C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
         anchors = sk.parent_anchors(state.parents, state.joints, state.joint_positions) if len(state.joints) else None
-        edit = sk.grow_skeleton(X, W, C, Q, state.parents, state.extents, growth_factor=sc.growth_factor,
-                                sections=sc.growth_sections, anchors=anchors, sharpness=sc.sharpness,
-                                min_section_vertices=sc.min_section_vertices)
+        edit = sk.grow_skeleton(X, W, C, Q, state.parents, state.extents, growth_factor=GROWTH_FACTOR,
+                                sections=GROWTH_SECTIONS, anchors=anchors, sharpness=SHARPNESS,
+                                min_section_vertices=MIN_SECTION_VERTICES)
         if model.num_bones + (edit.num_bones - model.num_bones) <= sc.max_bones:
             changed |= _apply(model, opt, state, edit, "grow", epoch, sc)
     elif epoch == sc.e1:
-        edit = sk.upsample_skeleton(X, W, C, Q, state.parents, min_relative_extent=sc.upsample_min_extent,
-                                    sharpness=sc.sharpness, extents=state.extents,
-                                    min_section_vertices=sc.min_section_vertices)
+        edit = sk.upsample_skeleton(X, W, C, Q, state.parents, sharpness=SHARPNESS, extents=state.extents,
+                                    min_section_vertices=MIN_SECTION_VERTICES)
         if edit.num_bones <= sc.max_bones:
             changed |= _apply(model, opt, state, edit, "upsample", epoch, sc)
     else:
         S, N = bone_motion_similarity(model, data, cfg)
         kid = np.flatnonzero(state.parents >= 0)
-        few = merge_min_frames(sc, data.num_frames)
+        few = merge_min_frames(data.num_frames)
         if len(kid):
             par = state.parents[kid]
             short = (N[kid, par] < few) & (S[kid, par] > sc.t_o)
             if short.any():
                 log.info("M-step epoch %d: bones %s agree with their parents %s (%s) on only %s of %d frame pairs "
-                         "(skeleton.min_frames_fraction %.3g): not merged", epoch, kid[short].tolist(),
+                         "(fewer than %d): not merged", epoch, kid[short].tolist(),
                          par[short].tolist(), " ".join(f"{x:.3f}" for x in S[kid, par][short]),
-                         N[kid, par][short].tolist(), data.num_frames - 1, sc.min_frames_fraction)
+                         N[kid, par][short].tolist(), data.num_frames - 1, few)
         S = np.where(N >= few, S, -np.inf)
         np.fill_diagonal(S, 1.0)
         if len(kid):  # what t_o is compared with: the motion similarity of each bone and its parent
@@ -360,38 +327,23 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int, sym_plane=No
             log.info("M-step epoch %d: motion similarity of the %d parent-child pairs: %s (%d finite), %d above t_o %.3g",
                      epoch, len(kid), " ".join(f"{x:.3f}" for x in np.sort(fin)[::-1]), len(fin),
                      int((fin > sc.t_o).sum()), sc.t_o)
-        mirror = _mirror(model, cfg, sym_plane, np.diag(N).copy())
-        if mirror is not None:  # a pair's similarity from the better-seen of it and its mirror image
-            m = mirror[0]
-            Nm = N[np.ix_(m, m)]
-            flip = np.flatnonzero(((Nm > N) & ((S[np.ix_(m, m)] > sc.t_o) != (S > sc.t_o))).any(1))
-            if len(flip):
-                log.info("M-step: merges of bones %s decided by their better-seen mirror partners", flip.tolist())
-            S = np.where(Nm > N, S[np.ix_(m, m)], S)
-        edit = sk.merge_bones(S, W, C, Q, state.parents, t_o=sc.t_o, mode=sc.merge_mode,
-                              temperature=sc.merge_temperature, extents=state.extents,
-                              partners=None if mirror is None else mirror[0])
-        if _apply(model, opt, state, edit, "merge", epoch, sc):
-            changed, mirror = True, _mirror(model, cfg, sym_plane, _seen_after(mirror, edit))
-        if sc.min_bone_length > 0 and len(state.joints):
-            edit = _prune_edit(model, state, sc, sc.min_bone_length, mirror)
-            if _apply(model, opt, state, edit, "prune", epoch, sc):
-                changed, mirror = True, _mirror(model, cfg, sym_plane, _seen_after(mirror, edit))
+        edit = sk.merge_bones(S, W, C, Q, state.parents, t_o=sc.t_o, temperature=MERGE_TEMPERATURE,
+                              extents=state.extents)
+        changed |= _apply(model, opt, state, edit, "merge", epoch, sc)
+        if MIN_BONE_LENGTH > 0 and len(state.joints):
+            changed |= _apply(model, opt, state, _prune_edit(model, state, sc, MIN_BONE_LENGTH), "prune", epoch, sc)
         if len(state.joints):
             split, E = bone_length_variation(model, data, state, cfg)
-            if sc.split_end_bones or sc.split_inner_bones:  # not in the paper: a knee inside a bone (end_bone_bending)
-                bend = end_bone_bending(model, data, state, E, cfg) > sc.t_u
-                if bend.any():
-                    log.info("M-step epoch %d: bones %s bend inside (unexplained motion > t_u %.3g)", epoch,
-                             np.flatnonzero(bend).tolist(), sc.t_u)
-                split = split | bend
-            if mirror is not None:
-                split = _from_mirror(split, mirror[1], mirror[0], "joint creation")
+            bend = end_bone_bending(model, data, state, E, cfg) > sc.t_u  # not in the paper: a knee inside a bone
+            if bend.any():
+                log.info("M-step epoch %d: bones %s bend inside (unexplained motion > t_u %.3g)", epoch,
+                         np.flatnonzero(bend).tolist(), sc.t_u)
+            split = split | bend
             if split.any() and model.num_bones + int(split.sum()) <= sc.max_bones:
                 X, W = _xw(model)
                 C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
-                edit = sk.split_at_joints(X, W, C, Q, state.parents, E, split, sharpness=sc.sharpness,
-                                          extents=state.extents, min_section_vertices=sc.min_section_vertices)
+                edit = sk.split_at_joints(X, W, C, Q, state.parents, E, split, sharpness=SHARPNESS,
+                                          extents=state.extents, min_section_vertices=MIN_SECTION_VERTICES)
                 changed |= _apply(model, opt, state, edit, "joint", epoch, sc)
     if not changed:
         state.history.append({"epoch": epoch, "operation": "none", "bones_before": model.num_bones,

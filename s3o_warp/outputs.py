@@ -54,7 +54,7 @@ def rig_from_model(fitter):
 
         X, Wn = _np(m.verts), _np(W)
         lengths = skl.bone_lengths(skl.bone_endpoints(X, Wn, pairs, t_r=fitter.cfg.skeleton.t_r,
-                                                      samples=joint_samples(m, fitter.cfg.skeleton)), X)
+                                                      samples=joint_samples(m)), X)
     return Rig(
         verts=_np(m.verts).astype(np.float32),
         faces=m.faces.cpu().numpy().astype(np.int32),

@@ -54,7 +54,6 @@ from s3o_warp.skeleton_edit import (
     fit_bones_to_parts,
     grow_skeleton,
     merge_bones,
-    mirror_partners,
     part_extents,
     precision_from_points,
     precision_to_quat_scales,
@@ -83,8 +82,6 @@ def bone_flow(
     conf: torch.Tensor | None = None,
     min_visible: float = 0.1,
     min_mass: float = 3.0,
-    pair_transform: torch.Tensor | None = None,
-    rigid_next: torch.Tensor | None = None,
     predicted: torch.Tensor | None = None,
 ):
     """Per-bone image motion ``F^{B,t}`` from the observed flow, eq. 4, normalised.
@@ -107,17 +104,6 @@ def bone_flow(
         min_visible: a bone is valid at t when its visible weight mass is at least this fraction of
             its total mass ``sum_n W[n, b]``...
         min_mass: ...and at least this many vertices' worth of weight.
-        pair_transform: optional ``(T-1, 3, 3)`` maps from crop-(t+1) pixels to crop-t pixels
-            (``A_t^-1 A_{t+1}`` of the crops' ``crop_to_frame``). Given, each sampled flow is re-expressed as
-            the motion in the frame, in crop-t pixels: ``f'(p) = M_t (p + f(p)) - p``. Each frame's crop box
-            follows its own mask, so the crop flow also holds the boxes' shift and zoom from frame to frame (a
-            common shift, and a radial flow that moves the two ends of one rigid part apart); with the
-            transform that jitter is not read as motion.
-        rigid_next: optional ``(T-1, N, 2)``: where the root's rigid motion alone takes each vertex at t+1, in
-            crop-(t+1) pixels (frame t's articulated pose, frame t+1's root and camera). Given, the blended
-            motion is the *articulated* part of the flow, ``p + f(p) - rigid_next`` (then scaled into crop-t
-            pixels by ``pair_transform``'s linear part, if given): a bone that moves with the body reads as
-            still, whatever the camera and the root do.
         predicted: optional ``(T-1, N, 2)`` per-vertex motion of the fitted model in the same pixels as the
             returned flow (``s3o_warp.losses.vertex_flow_crop`` for the crop flow), blended with the same
             visibility and weights as the observed flow.
@@ -144,10 +130,6 @@ def bone_flow(
     H, Wd = flow.shape[1:3]
     if conf is not None and tuple(conf.shape) != (T - 1, H, Wd):
         raise ValueError(f"{name}(): conf must have shape ({T - 1}, {H}, {Wd}), got {tuple(conf.shape)}")
-    if pair_transform is not None and tuple(pair_transform.shape) != (T - 1, 3, 3):
-        raise ValueError(f"{name}(): pair_transform must have shape ({T - 1}, 3, 3), got {tuple(pair_transform.shape)}")
-    if rigid_next is not None and tuple(rigid_next.shape) != (T - 1, N, 2):
-        raise ValueError(f"{name}(): rigid_next must have shape ({T - 1}, {N}, 2), got {tuple(rigid_next.shape)}")
     if predicted is not None and tuple(predicted.shape) != (T - 1, N, 2):
         raise ValueError(f"{name}(): predicted must have shape ({T - 1}, {N}, 2), got {tuple(predicted.shape)}")
     from s3o_warp.geometry import project
@@ -169,13 +151,6 @@ def bone_flow(
         s = torch.nn.functional.grid_sample(img, g, mode="bilinear", padding_mode="border", align_corners=True)
         s = s[:, :, 0].permute(0, 2, 1)  # (T-1, N, C)
         f = s[..., :2]
-        M = None if pair_transform is None else pair_transform.to(dev).float()
-        if rigid_next is not None:  # the articulated part: observed minus rigid position at t+1 (crop t+1)
-            f = uv + f - rigid_next.to(dev).float()
-            if M is not None:
-                f = torch.einsum("tij,tnj->tni", M[:, :2, :2], f)
-        elif M is not None:  # f' = M_t (p + f) - p: the motion in the frame, in crop-t pixels
-            f = torch.einsum("tij,tnj->tni", M[:, :2, :2], uv + f) + M[:, None, :2, 2] - uv
         vis = (visible[:-1].to(dev).bool() & inside).float()
         if conf is not None:
             vis = vis * s[..., 2].clamp(0, 1)
@@ -193,8 +168,7 @@ def bone_flow(
 
 
 def motion_similarity(F_B: torch.Tensor, valid: torch.Tensor, min_flow: float = 0.5,
-                      min_frames: int = 2, quantile: float = 0.0, return_frames: bool = False,
-                      static_agree: bool = False):
+                      min_frames: int = 2, return_frames: bool = False):
     """Motion similarity of every bone pair, eq. 8: ``min_f S(F_b^f, F_b'^f)`` over frames both see.
 
     ``S`` is the cosine similarity, made safe for static frames: with ``m = min_flow`` (pixels),
@@ -202,20 +176,14 @@ def motion_similarity(F_B: torch.Tensor, valid: torch.Tensor, min_flow: float = 
     longer than m; a frame where BOTH are shorter than m says nothing about direction and is skipped;
     where only one is short, S_m shrinks smoothly towards 0 (one part moves, the other does not:
     not moving together). Pairs with fewer than ``min_frames`` usable frames get ``-inf`` (never
-    merged). The diagonal is 1. ``quantile`` > 0 replaces the minimum over frames by that quantile of the
-    frames' similarities (linear interpolation): 0.1 = "agree in 90 % of the frames", so a few frames of
-    flow noise on parts that move a pixel or less in the crop do not veto a merge (0 = the paper's min).
+    merged). The diagonal is 1.
 
     Args:
         F_B: ``(T-1, B, 2)`` bone flow (:func:`bone_flow`), pixels.
         valid: ``(T-1, B)`` bool.
         min_flow: m, the magnitude (pixels) below which a bone counts as static in a frame.
         min_frames: fewest common usable frames for a finite similarity.
-        quantile: q in [0, 1) of the usable frames' similarities (0 = min, eq. 8).
         return_frames: also return how many usable frames each pair has.
-        static_agree: a frame where both are shorter than m counts as agreement (S = 1) instead of being
-            skipped: for articulated motion (``bone_flow(rigid_next=...)``), where two bones that both stay
-            with the body do move together.
 
     Returns:
         ``(B, B)`` float32 symmetric similarities in [-1, 1] or -inf; with ``return_frames`` also the
@@ -225,8 +193,6 @@ def motion_similarity(F_B: torch.Tensor, valid: torch.Tensor, min_flow: float = 
         raise ValueError(f"motion_similarity(): F_B must have shape (T-1, B, 2), got {tuple(F_B.shape)}")
     if tuple(valid.shape) != tuple(F_B.shape[:2]):
         raise ValueError(f"motion_similarity(): valid must have shape {tuple(F_B.shape[:2])}, got {tuple(valid.shape)}")
-    if not 0.0 <= float(quantile) < 1.0:
-        raise ValueError(f"motion_similarity(): quantile must be in [0, 1), got {quantile}")
     min_flow = max(float(min_flow), 1e-9)
     with torch.no_grad():
         F = F_B.float()
@@ -234,17 +200,8 @@ def motion_similarity(F_B: torch.Tensor, valid: torch.Tensor, min_flow: float = 
         den = mag.clamp_min(min_flow)
         S = torch.einsum("tbc,tdc->tbd", F, F) / (den[:, :, None] * den[:, None, :])
         moving = mag >= min_flow
-        both = valid[:, :, None] & valid[:, None, :]
-        if static_agree:
-            still = ~(moving[:, :, None] | moving[:, None, :])
-            S = torch.where(still, torch.ones_like(S), S)
-            use = both
-        else:
-            use = both & (moving[:, :, None] | moving[:, None, :])
-        if quantile > 0:
-            out = torch.nanquantile(torch.where(use, S, torch.full_like(S, float("nan"))), float(quantile), dim=0)
-        else:
-            out = torch.where(use, S, torch.full_like(S, float("inf"))).min(0).values
+        use = valid[:, :, None] & valid[:, None, :] & (moving[:, :, None] | moving[:, None, :])
+        out = torch.where(use, S, torch.full_like(S, float("inf"))).min(0).values
         out = torch.where(use.sum(0) >= min_frames, out, torch.full_like(out, float("-inf")))
         out.fill_diagonal_(1.0)
     return (out, use.sum(0)) if return_frames else out
@@ -413,7 +370,7 @@ def joint_positions(verts, weights, pairs, t_r: float = 0.4, fallback_count: int
 
 def size_of(verts) -> float:
     """The bbox diagonal of ``(N, 3)`` canonical vertices: the unit of the M-step's relative lengths
-    (``joint_depth``, ``min_bone_length``)."""
+    (``s3o_warp.mstep.JOINT_DEPTH``, ``MIN_BONE_LENGTH``)."""
     X = _np(verts)
     return float(np.linalg.norm(X.max(0) - X.min(0)))
 
@@ -801,7 +758,6 @@ __all__ = [
     "joint_selection",
     "kinematic_tree",
     "merge_bones",
-    "mirror_partners",
     "motion_similarity",
     "parent_anchors",
     "part_extents",

@@ -482,22 +482,19 @@ def upsample_skeleton(
     centers,
     precisions,
     parents,
-    min_relative_extent: float = 0.0,
     sharpness: float = DEFAULT_SHARPNESS,
     min_section_vertices: int = 4,
     extents=None,
 ) -> SkeletonEdit:
     """One skeleton upsampling (Alg. 1 at epoch e1): split bones in two along their part's principal axis.
 
-    Every bone whose part extent is at least ``min_relative_extent`` x the largest part extent (0 =
-    every bone) is split at the median projection on the principal axis of ``I_b`` (equal vertex
+    Every bone is split at the median projection on the principal axis of ``I_b`` (equal vertex
     counts). The half nearer to the parent's centre keeps the parent (for a root: the half lower in
     the axis' dominant coordinate stays the root); the other half is its child; children of the old
     bone hang from the half nearer to them.
 
     Args:
         verts, weights, centers, precisions, parents: as in :func:`grow_skeleton`.
-        min_relative_extent: only bones at least this fraction of the longest part are split.
         sharpness: precision scale of the new bones.
         min_section_vertices: bones with fewer than twice this many part vertices are not split.
         extents: optional ``(B,)`` growth references to carry through the edit.
@@ -509,10 +506,9 @@ def upsample_skeleton(
     ext = part_extents(X, W)
     lab = assign_parts(W)
     splits = {}
-    top = ext.max() if len(ext) else 0.0
     for b in range(W.shape[1]):
         pts = X[lab == b]
-        if len(pts) < 2 * min_section_vertices or ext[b] < min_relative_extent * top or ext[b] <= 0:
+        if len(pts) < 2 * min_section_vertices or ext[b] <= 0:
             continue
         d = _principal_axis(pts)
         if P[b] >= 0:
@@ -638,22 +634,19 @@ def merge_bones(
     precisions,
     parents,
     t_o: float = 0.95,
-    mode: Literal["greedy", "components"] = "greedy",
     temperature: float = 1.0,
     extents=None,
-    partners=None,
 ) -> SkeletonEdit:
     """Merge bones that move together (eqs. 8-9): ``min_f S(F_b', F_b'') > t_o`` for tree neighbours.
 
     Only bones adjacent in the kinematic tree (parent and child) are candidates, so a merge keeps a
-    tree. ``mode="greedy"``: candidate pairs in decreasing similarity, each bone merged at most once
-    per call (the paper's pairwise rule; repeated M-steps merge longer chains). ``"components"``:
-    every connected component of the candidate graph becomes one bone in a single call.
+    tree. Candidate pairs are taken in decreasing similarity, each bone merged at most once per call (the
+    paper's pairwise rule; repeated M-steps merge longer chains).
 
     The merged bone is ``B~ = sum_i w_i B_i`` for the centres C and precisions Q, with
     ``w = softmax(S / temperature)`` over the members' weight masses ``S_i = sum_n W[n, i]``. The paper
     writes ``w' = exp(S') / (exp(S') + exp(S''))``, which overflows for thousands of vertices; the
-    softmax in log space is the same number without overflow (DESIGN correction). ``temperature = 1``
+    softmax in log space is the same number without overflow. ``temperature = 1``
     is the paper's formula (then the larger part nearly always wins outright); larger values blend.
     The merged bone's motion is the same blend of its members' motions; its length comes from its
     joints afterwards (:func:`s3o_warp.skeleton.bone_lengths`).
@@ -662,35 +655,42 @@ def merge_bones(
         similarity: ``(B, B)`` motion similarity (:func:`s3o_warp.skeleton.motion_similarity`).
         weights: ``(N, B)`` W. centers: ``(B, 3)``. precisions: ``(B, 3, 3)``. parents: ``(B,)``.
         t_o: merge threshold (paper: 0.95; 0.99 finer, 0.90 coarser skeletons).
-        mode: greedy pairs or connected components (see above).
         temperature: softmax temperature of the merge weights (1 = paper).
         extents: optional ``(B,)`` growth references; a merged bone gets the blend of its members'.
-        partners: optional ``(B,)`` mirror partners (:func:`mirror_partners`). Greedy mode then merges a
-            candidate pair and its mirror pair in the same call, when that is a candidate too: two mirrored
-            limbs hanging from one bone on the plane merge into it together, where the pairwise rule
-            would merge one side now and the other an M-step later.
 
     Returns:
         A :class:`SkeletonEdit` (merged bones take the index of their lowest member, others keep order).
     """
-    name = "merge_bones"
+    B = _np(weights).shape[1]
+    Sim = _np(similarity)
+    _check("merge_bones", "similarity", Sim, (B, B))
+    P = _np(parents, np.int64)
+    _check("merge_bones", "parents", P, (B,))
+    cand = [(float(min(Sim[b, p], Sim[p, b])), int(p), b) for b, p in enumerate(P) if p >= 0]
+    cand = [c for c in cand if c[0] > t_o]
+    cand.sort(key=lambda c: -c[0])
+    used = np.zeros(B, bool)
+    pairs = []
+    for _s, a, b in cand:
+        if not (used[a] or used[b]):
+            used[a] = used[b] = True
+            pairs.append((a, b))
+    return _merge_pairs("merge_bones", pairs, weights, centers, precisions, P, temperature, extents)
+
+
+def _merge_pairs(name: str, pairs, weights, centers, precisions, parents, temperature: float, extents) -> SkeletonEdit:
+    """The edit of :func:`merge_bones` and :func:`prune_short_bones`: each connected component of the tree
+    edges ``pairs`` becomes one bone, blended with ``softmax(S / temperature)`` of its members' weight masses."""
     Wn = _np(weights)
     B = Wn.shape[1]
-    Sim = _np(similarity)
-    _check(name, "similarity", Sim, (B, B))
     C = _np(centers)
     _check(name, "centers", C, (B, 3))
     Q = _np(precisions)
     _check(name, "precisions", Q, (B, 3, 3))
     P = _np(parents, np.int64)
     _check(name, "parents", P, (B,))
-    if mode not in ("greedy", "components"):
-        raise ValueError(f"{name}(): mode must be 'greedy' or 'components', got {mode!r}")
     if temperature <= 0:
         raise ValueError(f"{name}(): temperature must be > 0, got {temperature}")
-    cand = [(float(min(Sim[b, p], Sim[p, b])), int(p), b) for b, p in enumerate(P) if p >= 0]
-    cand = [c for c in cand if c[0] > t_o]
-    cand.sort(key=lambda c: -c[0])
     root = list(range(B))
 
     def find(a: int) -> int:
@@ -699,26 +699,10 @@ def merge_bones(
             a = root[a]
         return a
 
-    M = None if partners is None else _np(partners, np.int64)
-    if M is not None:
-        _check(name, "partners", M, (B,))
-        is_cand = {(a, b) for _s, a, b in cand} | {(b, a) for _s, a, b in cand}
-    used = np.zeros(B, bool)
-    for _s, a, b in cand:
-        pairs = [(a, b)]
-        if mode == "greedy":
-            if used[a] or used[b]:
-                continue
-            if M is not None:
-                ma, mb = int(M[a]), int(M[b])
-                if {ma, mb} != {a, b} and (ma, mb) in is_cand and not any(used[i] for i in {ma, mb} - {a, b}):
-                    pairs.append((ma, mb))
-            for i, j in pairs:
-                used[i] = used[j] = True
-        for i, j in pairs:
-            ri, rj = find(i), find(j)
-            if ri != rj:
-                root[max(ri, rj)] = min(ri, rj)
+    for a, b in pairs:
+        ra, rb = find(a), find(b)
+        if ra != rb:
+            root[max(ra, rb)] = min(ra, rb)
     groups: dict[int, list[int]] = {}
     for b in range(B):
         groups.setdefault(find(b), []).append(b)
@@ -760,9 +744,10 @@ def prune_short_bones(lengths, min_length: float, weights, centers, precisions, 
     at all, whatever its length (an inner one's two joints then fall back to its neighbours' borders, which
     can lie far apart: a leg's top joint at the tail's base). Such bones carry no motion of their own that
     their neighbours do not, and they clutter the exported rig. A short end bone (no children) that owns vertices is kept: it is a tail tip, an
-    ear or a hoof. The pairs (short bone, neighbour) are merged as by :func:`merge_bones` in
-    ``"components"`` mode with the paper's weights (temperature 1), so a chain of short bones collapses
-    into the long bone it hangs from, whose centre, precision and motion win by their weight mass.
+    ear or a hoof. The pairs (short bone, neighbour) are merged as by :func:`merge_bones` with the paper's
+    weights (temperature 1), but all at once: each connected group of pairs becomes one bone, so a chain of
+    short bones collapses into the long bone it hangs from, whose centre, precision and motion win by their
+    weight mass.
 
     Args:
         lengths: ``(B,)`` canonical bone lengths (:func:`s3o_warp.skeleton.bone_lengths`).
@@ -779,60 +764,22 @@ def prune_short_bones(lengths, min_length: float, weights, centers, precisions, 
     _check("prune_short_bones", "lengths", L, (B,))
     if min_length < 0:
         raise ValueError(f"prune_short_bones(): min_length must be >= 0, got {min_length}")
-    S = np.zeros((B, B))
     kids = children_of(P)
     owned = np.bincount(assign_parts(_np(weights)), minlength=B)[:B]
     kids = [[c for c in k if owned[c] > 0] for k in kids]  # empty children go anyway: they do not make an inner bone
-    short = []
+    short, pairs = [], []
     for b in np.flatnonzero((L < min_length) | (owned == 0)):  # an empty bone's joints can lie far apart
         b = int(b)
         if not (kids[b] or owned[b] == 0):
             continue  # a short end bone with vertices: kept
         if P[b] < 0 and not kids[b]:
             continue  # a lone root: nothing to merge with
-        other = int(P[b]) if P[b] >= 0 else max(kids[b], key=lambda c: L[c])
-        S[b, other] = S[other, b] = 1.0
+        pairs.append((b, int(P[b]) if P[b] >= 0 else max(kids[b], key=lambda c: L[c])))
         short.append(b)
     if not short:
         return _identity_edit(_np(centers), _np(precisions), P, extents)
     log.info("prune_short_bones: bones %s shorter than %.4g or empty", short, min_length)
-    return merge_bones(S, weights, centers, precisions, P, t_o=0.5, mode="components", temperature=1.0,
-                       extents=extents)
-
-
-def mirror_partners(centers, plane, tol: float) -> np.ndarray:
-    """Each bone's mirror image across the symmetry plane ``n . p = d``: ``(B,)`` int64, ``m[b]`` the bone whose
-    centre lies nearest to b's reflected centre, where that is mutual, within ``tol`` and on the other side of
-    the plane; ``m[b] = b`` otherwise (bones on the plane, bones without a partner).
-
-    Not in the paper. The M-step uses it to take the same decision for a limb and its mirror image
-    (:func:`s3o_warp.mstep.m_step`): a far-side leg is seen less and its flow-derived motion and lengths say
-    less, so on its own it loses joints its near-side partner keeps.
-
-    Args:
-        centers: ``(B, 3)`` one point per bone in the canonical object frame (the M-step passes the parts'
-            centroids, :func:`shift_bones`).
-        plane: ``(normal (3,), offset)``; the normal need not be unit length.
-        tol: largest distance between a reflected centre and its partner's centre (object units).
-    """
-    C = _np(centers)
-    _check("mirror_partners", "centers", C, (None, 3))
-    n = _np(plane[0]).reshape(3)
-    norm = float(np.linalg.norm(n))
-    if not norm > 0:
-        raise ValueError("mirror_partners(): the plane's normal must not be zero")
-    if tol < 0:
-        raise ValueError(f"mirror_partners(): tol must be >= 0, got {tol}")
-    n, d = n / norm, float(plane[1]) / norm
-    side = C @ n - d  # signed distances to the plane
-    R = C - 2.0 * side[:, None] * n  # reflected centres
-    D = np.linalg.norm(R[:, None, :] - C[None, :, :], axis=-1)  # D[b, j] = |refl(C_b) - C_j|
-    near = D.argmin(1)
-    m = np.arange(len(C), dtype=np.int64)
-    for b, j in enumerate(near):
-        if j != b and near[j] == b and D[b, j] <= tol and side[b] * side[j] < 0:
-            m[b] = j
-    return m
+    return _merge_pairs("prune_short_bones", pairs, weights, centers, precisions, P, 1.0, extents)
 
 
 # ---------------------------------------------------------------------------------------------------

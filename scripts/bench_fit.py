@@ -115,10 +115,10 @@ def main(argv=None) -> int:
     ap.add_argument("--branch-from", default=None, metavar="RUN_TEMPLATE",
                     help="start each fit from another run's state just before its first merge (fit(..., branch_from=...)); "
                          "{case} and {seed} are filled in, e.g. runs/bench/runs/{case}-s3o-{seed}. Only the settings the "
-                         "refinement reads (skeleton.t_o, merge_quantile, t_u, split_end_bones, t_d, min_bone_length) may differ from that run's")
+                         "refinement reads (skeleton.t_o, t_u, t_d) may differ from that run's")
     ap.add_argument("--figure-tag", default="",
                     help="with --t-o: name the repository's figure renders/skeleton_t_o-CASE-TAG-DEVICE.png, so a study "
-                         "with other settings (e.g. --set skeleton.motion_frame=body --figure-tag body) does not "
+                         "with other settings (e.g. --set skeleton.t_d=0.25 --figure-tag td25) does not "
                          "overwrite the sequence's figure")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")  # the fit's log (M-step edits) to stderr

@@ -266,9 +266,8 @@ def test_a_fit_branched_at_another_t_o_ends_where_a_fresh_fit_at_it_ends(tiny_se
     secs = [r["seconds"] for r in rows]
     assert secs == sorted(secs)
     assert json.loads((c / "skeleton.json").read_text())["bones"] == json.loads((b / "skeleton.json").read_text())["bones"]
-    # merge_quantile, joint creation's t_d and the short-bone limit are read only after the branch too
-    other = {**over, "skeleton.t_o": 0.5, "skeleton.merge_quantile": 0.5, "skeleton.t_d": 0.05,
-             "skeleton.min_bone_length": 0.03}
+    # joint creation's t_d and the halves test's t_u are read only after the branch too
+    other = {**over, "skeleton.t_o": 0.5, "skeleton.t_d": 0.05, "skeleton.t_u": 0.3}
     fit(tiny_sequence, tmp_path / "d", _cfg(**other), torch.device("cpu"))
     fit(tiny_sequence, tmp_path / "e", _cfg(**other), torch.device("cpu"), branch_from=a)
     pd, pe = _final_params(tmp_path / "d"), _final_params(tmp_path / "e")
@@ -280,7 +279,7 @@ def test_a_branch_refuses_other_settings_and_a_run_without_its_checkpoint(tiny_s
     over = {"coarse.steps": 2, "motion.warmup_steps": 2, "motion.steps": 8, "skeleton.epochs": 4, "skeleton.e1": 1}
     a = tmp_path / "a"
     fit(tiny_sequence, a, _cfg(**over), torch.device("cpu"))
-    with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o, skeleton.merge_quantile, skeleton.t_u, skeleton.split_end_bones, skeleton.t_d, skeleton.min_bone_length, skeleton.split_inner_bones may differ"):
+    with pytest.raises(InputError, match=r"differ in motion.lr_bones .*only skeleton.t_o, skeleton.t_u, skeleton.t_d may differ"):
         fit(tiny_sequence, tmp_path / "b", _cfg(**over, **{"motion.lr_bones": 0.123}), torch.device("cpu"), branch_from=a)
     assert not (tmp_path / "b").exists()  # refused before any work
     # a setting the parent's run lacks is a difference, not read at today's default
@@ -516,12 +515,6 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
 
 
 @pytest.mark.parametrize("bad, names", [
-    ("skeleton.merge_quantile=1", "merge_quantile"),
-    ("skeleton.min_frames_fraction=1.5", "min_frames_fraction"),
-    ("skeleton.motion_frame=image", "motion_frame"),
-    ("skeleton.still_flow=0", "still_flow"),
-    ("skeleton.min_section_vertices=0", "min_section_vertices"),
-    ("skeleton.joint_samples=0", "joint_samples"),
     ("motion.resample_vertices=-1", "motion.resample_vertices"),
     ("motion.principal_point=centre", "motion.principal_point"),
 ])
@@ -633,10 +626,8 @@ def test_coarse_fit_keeps_the_lifted_depth(tiny_sequence, tmp_path):
 def _joint_fitter(tiny_sequence, tmp_path):
     """A Fitter in its joint phase after 3 steps on frames 0-3 (the bones have some motion). The M-step tests'
     cases (a far leg never seen moving, the shortest inner bone) were picked on this state, made with the medium
-    preset's own finest flow level (1), which is pinned so the state stays, and with the paper's joints over the
-    vertices and no inner-bone split (the defaults then; the tests of those two options turn them on)."""
-    cfg = _cfg(**{"coarse.steps": 5, "motion.warmup_steps": 5,
-                  "skeleton.joint_samples": 1, "skeleton.split_inner_bones": False})
+    preset's own finest flow level (1), which is pinned so the state stays."""
+    cfg = _cfg(**{"coarse.steps": 5, "motion.warmup_steps": 5})
     with mock.patch.object(video_flow, "FLOW_FINEST_SCALE", 1):
         data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
@@ -690,71 +681,78 @@ def test_m_step_keeps_the_posed_mesh_and_the_loss(tiny_sequence, tmp_path, epoch
     assert len(f.skel.parents) == f.model.num_bones
 
 
-def test_min_section_vertices_stops_the_m_steps_splits(tiny_sequence, tmp_path):
-    """skeleton.min_section_vertices reaches the upsampling and joint creation: when no bone owns enough vertices
+def test_min_section_vertices_stops_the_m_steps_splits(tiny_sequence, tmp_path, monkeypatch):
+    """mstep.MIN_SECTION_VERTICES reaches the upsampling and joint creation: when no bone owns enough vertices
     for two sections, neither splits one; at the default both do."""
+    from s3o_warp import mstep
     from s3o_warp.mstep import m_step
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
-    sc, B0 = cfg.skeleton, f.model.num_bones
-    sc.min_section_vertices = f.model.verts.shape[0]
+    sc, B0, default = cfg.skeleton, f.model.num_bones, mstep.MIN_SECTION_VERTICES
+    monkeypatch.setattr(mstep, "MIN_SECTION_VERTICES", f.model.verts.shape[0])
     assert not m_step(f.model, f.opt, data, cfg, f.skel, sc.e1) and f.model.num_bones == B0  # no upsampling
-    sc.min_section_vertices = 4
+    monkeypatch.setattr(mstep, "MIN_SECTION_VERTICES", default)
     assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1) and f.model.num_bones > B0
-    sc.t_o, sc.t_d, sc.min_bone_length = 2.0, 0.0, 0.0  # no merge, no pruning; every bone qualifies for a joint
+    sc.t_o, sc.t_d = 2.0, 0.0  # no merge; every bone qualifies for a joint
+    monkeypatch.setattr(mstep, "MIN_BONE_LENGTH", 0.0)  # no pruning
     B1 = f.model.num_bones
-    sc.min_section_vertices = f.model.verts.shape[0]
+    monkeypatch.setattr(mstep, "MIN_SECTION_VERTICES", f.model.verts.shape[0])
     assert not m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones == B1
-    sc.min_section_vertices = 4
+    monkeypatch.setattr(mstep, "MIN_SECTION_VERTICES", default)
     assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones > B1
     assert f.skel.history[-1]["operation"] == "joint"
 
 
-def test_joint_samples_reach_the_joints_and_the_m_step(tiny_sequence, tmp_path):
-    """skeleton.joint_samples: the joints are taken over the surface samples (not the vertices), and the
-    M-step's lengths and joint creation run on them."""
+def test_joint_samples_reach_the_joints_and_the_m_step(tiny_sequence, tmp_path, monkeypatch):
+    """The joints are taken over the surface samples (each face's 4 x 4 grid, mstep.JOINT_SAMPLES), not over the
+    vertices (1, the paper), and the M-step's lengths and joint creation run on them."""
+    from s3o_warp import mstep
     from s3o_warp import skeleton as sk
     from s3o_warp.mstep import bone_length_variation, m_step, refresh_joints
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     sc = cfg.skeleton
-    sc.centre_joints = False
     assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1) and len(f.skel.joints)
-    J1 = f.skel.joint_positions.copy()
-    sc.joint_samples = 4
-    refresh_joints(f.model, f.skel, sc)
+    J4 = f.skel.joint_positions.copy()
     X, W = f.model.verts.detach().double().numpy(), f.model.skinning().detach().double().numpy()
     s = sk.surface_samples(X, f.model.faces.numpy(), f.model.bone_centers.detach().double().numpy(),
                            f.model.precisions().detach().double().numpy(), 4)
-    np.testing.assert_allclose(f.skel.joint_positions, sk.joint_positions(X, W, f.skel.joints, t_r=sc.t_r, samples=s))
-    assert not np.allclose(f.skel.joint_positions, J1)
+    J = sk.joint_positions(X, W, f.skel.joints, t_r=sc.t_r, samples=s)
+    np.testing.assert_allclose(J4, sk.centre_in_body(J, X, f.model.faces.numpy(), max_depth=mstep.JOINT_DEPTH))
+    monkeypatch.setattr(mstep, "JOINT_SAMPLES", 1)
+    refresh_joints(f.model, f.skel, sc)
+    assert not np.allclose(f.skel.joint_positions, J4)
+    monkeypatch.undo()
     split, E = bone_length_variation(f.model, data, f.skel, cfg)
-    np.testing.assert_allclose(E, sk.bone_endpoints(X, W, f.skel.joints, t_r=sc.t_r, far_fraction=sc.far_fraction,
+    np.testing.assert_allclose(E, sk.bone_endpoints(X, W, f.skel.joints, t_r=sc.t_r, far_fraction=mstep.FAR_FRACTION,
                                                     samples=s))
-    sc.t_o, sc.t_d, sc.min_bone_length = 2.0, 0.0, 0.0  # every bone qualifies for a joint
+    sc.t_o, sc.t_d = 2.0, 0.0  # every bone qualifies for a joint
+    monkeypatch.setattr(mstep, "MIN_BONE_LENGTH", 0.0)
     B1 = f.model.num_bones
     assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones > B1
     assert len(f.skel.parents) == f.model.num_bones == len(f.skel.joints) + 1
 
 
-def test_m_step_splits_end_bones_that_bend_and_keeps_the_loss(tiny_sequence, tmp_path):
-    """skeleton.split_end_bones: end bones whose halves' unexplained motion is above t_u get a joint (here t_u < 0:
-    every end bone seen in enough frames); off, or above every bone's, nothing splits. The loss does not jump."""
+def test_m_step_splits_bones_that_bend_and_keeps_the_loss(tiny_sequence, tmp_path, monkeypatch):
+    """Bones whose halves' unexplained motion is above t_u get a joint, end bones (one joint) and inner bones (two
+    joints or more) alike (here t_u < 0: every bone seen in enough frames); above every bone's, nothing splits.
+    The loss does not jump."""
+    from s3o_warp import mstep
     from s3o_warp.mstep import bone_length_variation, end_bone_bending, m_step
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     sc = cfg.skeleton
     assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1)  # upsampling: the joints the refinement reads
-    sc.t_o, sc.t_d, sc.min_bone_length = 2.0, 1e9, 0.0  # no merge, no pruning, no eq. 6 joint
+    sc.t_o, sc.t_d = 2.0, 1e9  # no merge, no eq. 6 joint
+    monkeypatch.setattr(mstep, "MIN_BONE_LENGTH", 0.0)  # no pruning
     B0 = f.model.num_bones
+    count = np.bincount(f.skel.joints.ravel(), minlength=B0)
     _, E = bone_length_variation(f.model, data, f.skel, cfg)
     r = end_bone_bending(f.model, data, f.skel, E, cfg)
-    ends = np.bincount(f.skel.joints.ravel(), minlength=B0) == 1
-    assert np.isfinite(r).sum() >= 1 and not np.isfinite(r[~ends]).any()
+    assert np.isfinite(r[count == 1]).any() and np.isfinite(r[count >= 2]).any()
+    assert not np.isfinite(r[count == 0]).any()
     assert ((r[np.isfinite(r)] >= 0) & (r[np.isfinite(r)] <= 2)).all()
-    sc.split_end_bones, sc.t_u = False, -1.0
-    assert not m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones == B0
-    sc.split_end_bones, sc.t_u = True, float(np.nanmax(r)) + 0.01
+    sc.t_u = float(np.nanmax(r)) + 0.01
     assert not m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones == B0
     before, loss0 = _posed_and_loss(f, frames)
     sc.t_u = -1.0
@@ -764,48 +762,20 @@ def test_m_step_splits_end_bones_that_bend_and_keeps_the_loss(tiny_sequence, tmp
     _assert_no_jump(before, after, loss0, loss1)
 
 
-def test_m_step_splits_inner_bones_that_bend(tiny_sequence, tmp_path):
-    """skeleton.split_inner_bones: the halves test runs on the bones with two joints or more too (alone: only on
-    them), and with t_u < 0 every one measured gets a joint."""
-    from s3o_warp.mstep import bone_length_variation, end_bone_bending, m_step
-
-    cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
-    sc = cfg.skeleton
-    assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1)
-    sc.t_o, sc.t_d, sc.min_bone_length = 2.0, 1e9, 0.0  # no merge, no pruning, no eq. 6 joint
-    B0 = f.model.num_bones
-    count = np.bincount(f.skel.joints.ravel(), minlength=B0)
-    _, E = bone_length_variation(f.model, data, f.skel, cfg)
-    r_end = end_bone_bending(f.model, data, f.skel, E, cfg)
-    sc.split_inner_bones = True
-    r_all = end_bone_bending(f.model, data, f.skel, E, cfg)
-    sc.split_end_bones = False
-    r_inner = end_bone_bending(f.model, data, f.skel, E, cfg)
-    assert np.isfinite(r_inner).sum() >= 1 and not np.isfinite(r_inner[count < 2]).any()
-    np.testing.assert_array_equal(np.isfinite(r_all), np.isfinite(r_end) | np.isfinite(r_inner))
-    np.testing.assert_allclose(r_all[count >= 2], r_inner[count >= 2])
-    np.testing.assert_allclose(r_all[count == 1], r_end[count == 1])
-    sc.t_u = -1.0
-    before, loss0 = _posed_and_loss(f, frames)
-    assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1)
-    assert f.model.num_bones == B0 + int(np.isfinite(r_inner).sum()) and f.skel.history[-1]["operation"] == "joint"
-    after, loss1 = _posed_and_loss(f, frames)
-    _assert_no_jump(before, after, loss0, loss1)
-
-
-def test_m_step_prunes_short_bones_and_keeps_the_loss(tiny_sequence, tmp_path):
-    """After e1 the M-step merges bones shorter than skeleton.min_bone_length into their parents; the
+def test_m_step_prunes_short_bones_and_keeps_the_loss(tiny_sequence, tmp_path, monkeypatch):
+    """After e1 the M-step merges bones shorter than mstep.MIN_BONE_LENGTH into their parents; the
     posed mesh and the loss barely move (the short bone's few vertices follow its parent)."""
+    from s3o_warp import mstep
     from s3o_warp import skeleton as sk
-    from s3o_warp.mstep import m_step
+    from s3o_warp.mstep import joint_samples, m_step
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
-    cfg.skeleton.t_o, cfg.skeleton.t_d = 2.0, 1e9  # no motion merge, no joint creation: only the pruning
-    cfg.skeleton.split_end_bones = False
+    cfg.skeleton.t_o, cfg.skeleton.t_d, cfg.skeleton.t_u = 2.0, 1e9, float("inf")  # no merge, no joint: pruning only
     X, W = f.model.verts.detach().double().numpy(), f.model.skinning().detach().double().numpy()
-    L = sk.bone_lengths(sk.bone_endpoints(X, W, f.skel.joints, t_r=cfg.skeleton.t_r), X) / sk.size_of(X)
+    E = sk.bone_endpoints(X, W, f.skel.joints, t_r=cfg.skeleton.t_r, samples=joint_samples(f.model))
+    L = sk.bone_lengths(E, X) / sk.size_of(X)
     inner = np.flatnonzero(np.bincount(f.skel.parents[f.skel.parents >= 0], minlength=len(L)) > 0)
-    cfg.skeleton.min_bone_length = float(L[inner].min() * 1.001)  # the shortest inner bone is short
+    monkeypatch.setattr(mstep, "MIN_BONE_LENGTH", float(L[inner].min() * 1.001))  # the shortest inner bone is short
     # bones that own no vertex go too, whatever their length (prune_short_bones); the fit's state may hold some
     empty = np.bincount(sk.assign_parts(W), minlength=len(L))[: len(L)] == 0
     empty[inner[np.argmin(L[inner])]] = False
@@ -818,12 +788,12 @@ def test_m_step_prunes_short_bones_and_keeps_the_loss(tiny_sequence, tmp_path):
     after, loss1 = _posed_and_loss(f, frames)
     _assert_no_jump(before, after, loss0, loss1)  # measured: 0.08 % of the diagonal, 2.1 % of the loss (9 -> 8 bones)
     # 0 = the paper: nothing is pruned
-    cfg.skeleton.min_bone_length = 0.0
+    monkeypatch.setattr(mstep, "MIN_BONE_LENGTH", 0.0)
     assert not m_step(f.model, f.opt, data, cfg, f.skel, cfg.skeleton.e1 + 1)
 
 
 def test_the_fits_end_merges_bones_that_own_no_vertex(tiny_sequence, tmp_path):
-    """skeleton.prune_empty_at_end: an inner bone that owns no vertex when the fit ends is merged into its parent
+    """An inner bone that owns no vertex when the fit ends is merged into its parent
     (its child re-hangs there, a joint between them replaces its two), and the posed mesh and the loss stay."""
     from s3o_warp.mstep import m_step
 
@@ -837,10 +807,6 @@ def test_the_fits_end_merges_bones_that_own_no_vertex(tiny_sequence, tmp_path):
         f.model.bone_centers[b] += 10.0 * (f.model.verts.amax(0) - f.model.verts.amin(0)).norm()
     assert (f.model.skinning().argmax(1) != b).all()
     B0, parent, kids = f.model.num_bones, int(P[b]), np.flatnonzero(P == b)
-    cfg.skeleton.prune_empty_at_end = False
-    f.final_skeleton()
-    assert f.model.num_bones == B0 and len(f.skel.joints) == B0 - 1  # off: kept, joints refreshed
-    cfg.skeleton.prune_empty_at_end = True
     f.final_skeleton()
     assert f.model.num_bones == B0 - 1 and f.skel.history[-1]["operation"] == "prune empty (end)"
     new = lambda x: x - (x > b)  # noqa: E731 - indices after b shift down by one
@@ -852,15 +818,16 @@ def test_the_fits_end_merges_bones_that_own_no_vertex(tiny_sequence, tmp_path):
     assert f.model.num_bones == B0 - 1
 
 
-def test_m_step_does_not_merge_on_a_few_frames(tiny_sequence, tmp_path, caplog):
+def test_m_step_does_not_merge_on_a_few_frames(tiny_sequence, tmp_path, caplog, monkeypatch):
     """A pair that agrees (> t_o) merges when compared on enough frame pairs, and is kept apart, with one log
-    line, when skeleton.min_frames_fraction asks for more frame pairs than it was compared on."""
+    line, when mstep.MIN_FRAMES_FRACTION asks for more frame pairs than it was compared on."""
+    from s3o_warp import mstep
     from s3o_warp.mstep import bone_motion_similarity, merge_min_frames, m_step
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     sc = cfg.skeleton
-    sc.min_bone_length, sc.t_d, sc.merge_mode = 0.0, 1e9, "greedy"  # merges only
-    sc.split_end_bones = False
+    sc.t_d, sc.t_u = 1e9, float("inf")  # merges only
+    monkeypatch.setattr(mstep, "MIN_BONE_LENGTH", 0.0)
     S, N = bone_motion_similarity(f.model, data, cfg)
     P, B0 = f.skel.parents, f.model.num_bones
     kids = [b for b in range(B0) if P[b] >= 0 and np.isfinite(S[b, P[b]])]
@@ -870,89 +837,17 @@ def test_m_step_does_not_merge_on_a_few_frames(tiny_sequence, tmp_path, caplog):
     merges = sum(1 for c in kids if S[c, P[c]] > sc.t_o)
     g = copy.deepcopy(f)
     g.opt = g._make_optimizer()
-    sc.min_frames_fraction = 0.0
-    assert merge_min_frames(sc, data.num_frames) == sc.min_frames
+    monkeypatch.setattr(mstep, "MIN_FRAMES_FRACTION", 0.0)
+    assert merge_min_frames(data.num_frames) == mstep.MIN_FRAMES
     assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones == B0 - merges
     gc = g.cfg.skeleton
-    gc.t_o, gc.min_bone_length, gc.t_d, gc.merge_mode = sc.t_o, 0.0, 1e9, "greedy"
-    gc.split_end_bones = False
-    gc.min_frames_fraction = min(1.0, (int(N[b, P[b]]) + 0.5) / (data.num_frames - 1))  # one frame pair more
-    assert merge_min_frames(gc, data.num_frames) == int(N[b, P[b]]) + 1
+    gc.t_o, gc.t_d, gc.t_u = sc.t_o, 1e9, float("inf")
+    monkeypatch.setattr(mstep, "MIN_FRAMES_FRACTION", min(1.0, (int(N[b, P[b]]) + 0.5) / (data.num_frames - 1)))
+    assert merge_min_frames(data.num_frames) == int(N[b, P[b]]) + 1  # one frame pair more than b was compared on
     with caplog.at_level(logging.INFO, logger="s3o_warp.mstep"):
         m_step(g.model, g.opt, data, g.cfg, g.skel, gc.e1 + 1)
     assert g.model.num_bones == B0 - sum(1 for c in kids if S[c, P[c]] > sc.t_o and N[c, P[c]] > N[b, P[b]])
     assert any("not merged" in r.getMessage() and str(b) in r.getMessage() for r in caplog.records)
-
-
-def _lengths_vary(f, data, cfg):
-    """Each bone's relative length range over the clip (eq. 6 corrected), as the M-step measures it."""
-    from s3o_warp import skeleton as sk
-
-    X, W = f.model.verts.detach().double().numpy(), f.model.skinning().detach().double().numpy()
-    E = sk.bone_endpoints(X, W, f.skel.joints, t_r=cfg.skeleton.t_r, far_fraction=cfg.skeleton.far_fraction)
-    with torch.no_grad():
-        Lf = sk.bone_lengths_per_frame(E, f.model.posed_object(torch.arange(data.num_frames)).double().numpy())
-    return (Lf.max(0) - Lf.min(0)) / np.median(Lf, 0)
-
-
-@pytest.mark.parametrize("op", ["merge", "joint"])
-def test_m_step_decides_mirror_partners_by_the_better_seen_one(tiny_sequence, tmp_path, op, monkeypatch):
-    """With skeleton.mirror, a bone and its mirror partner across the symmetry plane get the decision of the
-    one seen moving in more frames. The tiny clip's far hind leg is never seen moving (its similarities are
-    -inf: never merged) while the near one merges into the hip; and the two legs' length ranges straddle a
-    t_d. Off, each decides on its own; on, the far leg follows the near one, and the loss does not jump."""
-    from s3o_warp import skeleton as sk
-    from s3o_warp.mstep import bone_motion_similarity, m_step
-
-    cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
-    sc = cfg.skeleton
-    sc.min_bone_length, sc.mirror, sc.mirror_tol, sc.merge_mode = 0.0, True, 0.1, "components"
-    sc.split_end_bones = False  # eq. 6's joints only
-    X, W = f.model.verts.detach().double().numpy(), f.model.skinning().detach().double().numpy()
-    parts = sk.shift_bones(X, W, f.model.bone_centers.detach().double().numpy())  # the parts' centroids
-    m = sk.mirror_partners(parts, f.sym_plane, 0.1 * sk.size_of(X))
-    S, N = bone_motion_similarity(f.model, data, cfg)
-    seen = np.diag(N)
-    P, B0 = f.skel.parents, f.model.num_bones
-    pairs = [b for b in range(B0) if m[b] > b]
-    assert pairs, "the tiny clip's legs should give at least one mirrored bone pair at mirror_tol 0.1"
-    if op == "merge":  # t_o between a mirrored (child, parent) pair's similarities; no joints
-        sc.t_d = 1e9
-        cases = [(b, int(P[b])) for b in range(B0) if m[b] != b and P[b] >= 0
-                 and N[m[b], m[P[b]]] > N[b, P[b]] and S[m[b], m[P[b]]] > S[b, P[b]]]
-        assert cases, "expected a leg that its better-seen mirror partner lets merge"
-        b, p = cases[0]
-        sc.t_o = float(max(S[b, p], S[m[b], m[p]] - 0.02))
-        Sb = S.copy()
-        Sb[N[np.ix_(m, m)] > N] = S[np.ix_(m, m)][N[np.ix_(m, m)] > N]  # the rule, for the expected count
-        merges = lambda Sim: sum(1 for c in range(B0) if P[c] >= 0 and Sim[c, P[c]] > sc.t_o)  # noqa: E731
-        want_off, want_on = B0 - merges(S), B0 - merges(Sb)
-    else:  # t_d between a mirror pair's length ranges; no merges. The tiny mesh's leg bones own too few
-        # vertices to be cut (split_at_joints skips them), so the decision handed to it is compared
-        sc.t_o = 2.0
-        r = _lengths_vary(f, data, cfg)
-        b = max(pairs, key=lambda i: abs(r[i] - r[m[i]]) * (seen[i] != seen[m[i]]))
-        assert seen[b] != seen[m[b]] and r[b] != r[m[b]]
-        sc.t_d = float((r[b] + r[m[b]]) / 2)
-        split = r > sc.t_d
-        want_off, want_on = split, np.where(seen[m] > seen, split[m], split)
-        decided = []
-        real_split = sk.split_at_joints
-        monkeypatch.setattr(sk, "split_at_joints",
-                            lambda *a, **k: decided.append(np.asarray(a[6])) or real_split(*a, **k))
-    assert np.any(want_on != want_off)  # the case exercises a mirrored decision
-    g = copy.deepcopy(f)  # the same fitter, mirroring off
-    g.opt = g._make_optimizer()
-    g.cfg.skeleton.mirror = False
-    m_step(g.model, g.opt, data, g.cfg, g.skel, sc.e1 + 1, sym_plane=g.sym_plane)
-    before, loss0 = _posed_and_loss(f, frames)
-    m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1, sym_plane=f.sym_plane)
-    if op == "merge":
-        assert g.model.num_bones == want_off and f.model.num_bones == want_on == len(f.skel.parents)
-    else:
-        assert [d.tolist() for d in decided] == [w.tolist() for w in (want_off, want_on) if w.any()]  # none: not called
-    after, loss1 = _posed_and_loss(f, frames)
-    _assert_no_jump(before, after, loss0, loss1)
 
 
 @pytest.mark.parametrize("method", ["marching", "isotropic"])

@@ -157,91 +157,6 @@ def test_bone_flow_matches_cv2_remap_twin(device):
     np.testing.assert_allclose(F.numpy(), Fr, atol=2e-3)
 
 
-def test_bone_flow_in_the_frame_takes_out_the_crop_jitter():
-    """Two parts still in the frame, seen through crops that shift and zoom: the crop flow is the boxes' jitter
-    only (its two ends move apart), and with ``pair_transform`` (A_t^-1 A_{t+1}) the bones are still; a part
-    that moves in the frame keeps its frame motion, in crop-t pixels."""
-    S, T, N = 64, 3, 200
-    rng = np.random.default_rng(3)
-    K = np.array([[50.0, 0, 31.5], [0, 50.0, 31.5], [0, 0, 1]])
-    verts = np.repeat(_two_parts(rng, N, 0.5, 0.3)[None], T, 0)
-    # crop_to_frame A_t = [[a, 0, ox], [0, a, oy]]: frame point x = a p + o
-    A = np.array([[[a, 0, ox], [0, a, oy], [0, 0, 1]] for a, ox, oy in ((2.0, 10.0, 5.0), (2.1, 7.0, 6.0), (1.9, 12.0, 3.0))])
-    move = np.zeros((T - 1, 2))  # part 0's frame flow per pair; part 1's is the argument of crop_flow
-    M = np.linalg.solve(A[:-1], A[1:])  # crop t+1 -> crop t
-
-    def crop_flow(t, part_shift):
-        """f(p) = A_{t+1}^-1 (A_t p + F) - p for the frame flow F (part 1 right of column 31.5: part_shift)."""
-        Ai = np.linalg.inv(A[t + 1])
-        c, r = np.meshgrid(np.arange(S, dtype=float), np.arange(S, dtype=float))
-        F = np.stack([np.where(c > 31.5, part_shift[0], move[t, 0]), np.where(c > 31.5, part_shift[1], move[t, 1])], -1)
-        x = np.stack([A[t, 0, 0] * c + A[t, 0, 2], A[t, 1, 1] * r + A[t, 1, 2]], -1) + F
-        q = np.stack([Ai[0, 0] * x[..., 0] + Ai[0, 2], Ai[1, 1] * x[..., 1] + Ai[1, 2]], -1)
-        return (q - np.stack([c, r], -1)).astype(np.float32)
-
-    W = torch.tensor(_hard_weights(np.r_[np.zeros(100, int), np.ones(100, int)], 2), dtype=torch.float32)
-    args = (torch.tensor(verts, dtype=torch.float32), torch.tensor(K).float().expand(T, 3, 3))
-    vis = torch.ones(T, N, dtype=torch.bool)
-    still = torch.tensor(np.stack([crop_flow(t, (0.0, 0.0)) for t in range(T - 1)]))
-    F, ok = sk.bone_flow(*args, still, vis, W)
-    assert ok.all() and F.norm(dim=-1).min() > 0.5  # the jitter alone reads as motion in crop pixels...
-    assert (F[:, 0, 0] * F[:, 1, 0] < 0).all()  # ...and the zoom moves the two still parts apart (in x)
-    Ff, ok = sk.bone_flow(*args, still, vis, W, pair_transform=torch.tensor(M))
-    torch.testing.assert_close(Ff, torch.zeros_like(Ff), atol=1e-4, rtol=0)
-    moving = torch.tensor(np.stack([crop_flow(t, (4.0, -2.0)) for t in range(T - 1)]))
-    Ff, ok = sk.bone_flow(*args, moving, vis, W, pair_transform=torch.tensor(M))
-    want = torch.tensor([[[0.0, 0.0], [4.0 / A[t, 0, 0], -2.0 / A[t, 0, 0]]] for t in range(T - 1)], dtype=torch.float32)
-    torch.testing.assert_close(Ff, want, atol=1e-4, rtol=0)
-    with pytest.raises(ValueError, match="pair_transform"):
-        sk.bone_flow(*args, still, vis, W, pair_transform=torch.tensor(M[:1]))
-
-
-def test_bone_flow_articulated_part_and_static_agreement():
-    """With ``rigid_next`` the bone motion is what the body's rigid motion does not explain: a body that turns
-    and moves reads as still, a part that also swings keeps its swing; then two still bones agree
-    (``static_agree``) and the swinging one does not."""
-    S, T = 64, 3
-    # one vertex on each pixel centre of a 40 x 16 block (depth 2), flow given exactly at those pixels
-    cols, rows = np.meshgrid(np.arange(12, 52), np.arange(24, 40))
-    uv = np.stack([cols.ravel(), rows.ravel()], -1).astype(float)
-    N = len(uv)
-    f = 50.0
-    X = np.concatenate([(uv - 31.5) / f * 2.0, np.full((N, 1), 2.0)], -1)
-    labels = np.digitize(uv[:, 0], [25, 38])  # three parts, left to right
-    c, s_ = np.cos(np.radians(8)), np.sin(np.radians(8))
-    R = np.array([[c, 0, s_], [0, 1, 0], [-s_, 0, c]])
-
-    def proj(P):
-        return P[:, :2] / P[:, 2:] * f + 31.5
-
-    body = (X - [0, 0, 2.0]) @ R.T + [0.1, 0.0, 2.0]  # the body turned 8 degrees and moved 0.1 right
-    moved = body + np.where(labels[:, None] == 2, [0, 0.05, 0], 0)  # part 2 also swings 0.05 down
-    flow = np.zeros((T - 1, S, S, 2), np.float32)
-    flow[:, rows.ravel(), cols.ravel()] = proj(moved) - uv
-    rigid = torch.tensor(np.stack([proj(body)] * (T - 1)), dtype=torch.float32)
-    W = torch.tensor(_hard_weights(labels, 3), dtype=torch.float32)
-    K = torch.tensor([[f, 0, 31.5], [0, f, 31.5], [0, 0, 1]]).expand(T, 3, 3)
-    args = (torch.tensor(np.repeat(X[None], T, 0), dtype=torch.float32), K, torch.tensor(flow),
-            torch.ones(T, N, dtype=torch.bool), W)
-    F_raw, _ = sk.bone_flow(*args)
-    assert F_raw.norm(dim=-1).min() > 1.0  # the turn and the move: every part moves several pixels
-    F, ok = sk.bone_flow(*args, rigid_next=rigid)
-    assert ok.all()
-    expect = np.stack([(proj(moved) - proj(body))[labels == b].mean(0) for b in range(3)])
-    for t in range(T - 1):
-        np.testing.assert_allclose(F[t].numpy(), expect, atol=1e-3)
-    assert F[0, :2].norm(dim=-1).max() < 1e-3 and F[0, 2, 1] > 1.0  # still, still, swinging down
-    # with pair_transform: scaled into crop-t pixels by its linear part (crop t+1 at half the scale here)
-    M = torch.tensor([[[0.5, 0, 3.0], [0, 0.5, -2.0], [0, 0, 1]]] * (T - 1))
-    Fm, _ = sk.bone_flow(*args, rigid_next=rigid, pair_transform=M)
-    torch.testing.assert_close(Fm, 0.5 * F, atol=1e-5, rtol=0)
-    Sm = sk.motion_similarity(F, ok, min_flow=0.5, static_agree=True)
-    assert Sm[0, 1] == 1.0 and Sm[0, 2] < 0.5 and Sm[1, 2] < 0.5
-    assert sk.motion_similarity(F, ok, min_flow=0.5)[0, 1] == float("-inf")  # skipped frames: never merged
-    with pytest.raises(ValueError, match="rigid_next"):
-        sk.bone_flow(*args, rigid_next=torch.zeros(T - 1, N, 3))
-
-
 def test_bone_flow_barely_visible_is_invalid():
     N, T = 50, 2
     verts = torch.zeros(T, N, 3)
@@ -266,7 +181,7 @@ def test_bone_flow_barely_visible_is_invalid():
 # -------------------------------------------------------------------------------------------------
 
 
-def _similarity_naive(F, valid, m, min_frames, q=0.0):
+def _similarity_naive(F, valid, m, min_frames):
     T1, B = valid.shape
     out = np.full((B, B), -np.inf)
     for a in range(B):
@@ -278,7 +193,7 @@ def _similarity_naive(F, valid, m, min_frames, q=0.0):
                 if valid[t, a] and valid[t, b] and (na >= m or nb >= m):
                     vals.append(fa @ fb / (max(na, m) * max(nb, m)))
             if len(vals) >= min_frames:
-                out[a, b] = np.quantile(vals, q)
+                out[a, b] = min(vals)
         out[a, a] = 1
     return out
 
@@ -306,7 +221,8 @@ def test_motion_similarity_together_vs_different_and_static_frames():
     assert sk.motion_similarity(torch.tensor(F2).float(), torch.tensor(valid))[0, 1] < 0.05
 
 
-def test_motion_similarity_quantile_forgives_a_few_noisy_frames():
+def test_motion_similarity_is_the_minimum_over_frames():
+    """Eq. 8 "in every frame": one frame where two bones that otherwise move together disagree vetoes the pair."""
     rng = np.random.default_rng(5)
     T1 = 20
     d = rng.normal(size=(T1, 2)) * 3
@@ -314,14 +230,9 @@ def test_motion_similarity_quantile_forgives_a_few_noisy_frames():
     F[7, 1] = -F[7, 0]  # one frame of flow noise
     valid = np.ones((T1, 3), bool)
     valid[:3, 2] = False
-    for q in (0.0, 0.1, 0.3):
-        Sim = sk.motion_similarity(torch.tensor(F).float(), torch.tensor(valid), quantile=q)
-        np.testing.assert_allclose(Sim.numpy(), _similarity_naive(F, valid, 0.5, 2, q), atol=1e-5)
-    assert sk.motion_similarity(torch.tensor(F).float(), torch.tensor(valid))[0, 1] < -0.9  # min: vetoed
-    assert sk.motion_similarity(torch.tensor(F).float(), torch.tensor(valid), quantile=0.1)[0, 1] > 0.99
-    assert sk.motion_similarity(torch.tensor(F).float(), torch.tensor(valid), quantile=0.1)[0, 2] < -0.99
-    with pytest.raises(ValueError, match="quantile"):
-        sk.motion_similarity(torch.tensor(F).float(), torch.tensor(valid), quantile=1.0)
+    Sim = sk.motion_similarity(torch.tensor(F).float(), torch.tensor(valid))
+    np.testing.assert_allclose(Sim.numpy(), _similarity_naive(F, valid, 0.5, 2), atol=1e-5)
+    assert Sim[0, 1] < -0.9 and Sim[0, 2] < -0.99
 
 
 def test_merge_together_merges_and_different_does_not():
@@ -356,7 +267,10 @@ def test_merge_together_merges_and_different_does_not():
     assert not sk.merge_bones(Sim3, W, C, Q, parents).changed
 
 
-def test_merge_modes_and_log_space_weights_do_not_overflow():
+def test_merge_is_greedy_and_log_space_weights_do_not_overflow():
+    """Each bone merges at most once per call (the paper's pairwise rule): of a chain whose bones all move
+    together, only the first pair merges; the merge weights are a softmax of the weight masses, without
+    overflow for thousands of vertices."""
     rng = np.random.default_rng(5)
     N = 5000
     labels = rng.choice(3, N, p=[0.5, 0.3, 0.2])
@@ -366,52 +280,24 @@ def test_merge_modes_and_log_space_weights_do_not_overflow():
     parents = np.array([-1, 0, 1])
     Sim = np.ones((3, 3))
     with np.errstate(over="raise"):
-        g = sk.merge_bones(Sim, W, C, Q, parents, mode="greedy")
-        c = sk.merge_bones(Sim, W, C, Q, parents, mode="components")
-        soft = sk.merge_bones(Sim, W, C, Q, parents, mode="components", temperature=1000.0)
-    assert g.num_bones == 2 and c.num_bones == 1  # greedy: each bone merges once per call
-    for e in (g, c, soft):
+        g = sk.merge_bones(Sim, W, C, Q, parents)
+        soft = sk.merge_bones(Sim, W, C, Q, parents, temperature=1000.0)
+    assert g.num_bones == 2 and [[i for i, _ in src] for src in g.sources] == [[0, 1], [2]]
+    for e in (g, soft):
         assert np.isfinite(e.centers).all() and np.isfinite(e.precisions).all()
         for src in e.sources:
             assert abs(sum(w for _, w in src) - 1) < 1e-12
-    S = W.sum(0)
-    for temp, e in ((1.0, c), (1000.0, soft)):
+    S = W.sum(0)[:2]
+    for temp, e in ((1.0, g), (1000.0, soft)):
         z = S / temp
         w = np.exp(z - z.max()) / np.exp(z - z.max()).sum()  # softmax computed in log space
         np.testing.assert_allclose([wi for _, wi in e.sources[0]], w, rtol=1e-12)
-        np.testing.assert_allclose(e.centers[0], w @ C, rtol=1e-12)
-        np.testing.assert_allclose(e.precisions[0], np.einsum("i,ijk->jk", w, Q), rtol=1e-12)
-    assert [wi for _, wi in c.sources[0]][0] == 1.0  # temperature 1: the largest part wins outright
+        np.testing.assert_allclose(e.centers[0], w @ C[:2], rtol=1e-12)
+        np.testing.assert_allclose(e.precisions[0], np.einsum("i,ijk->jk", w, Q[:2]), rtol=1e-12)
+    assert [wi for _, wi in g.sources[0]][0] == 1.0  # temperature 1: the largest part wins outright
     assert 0.1 < [wi for _, wi in soft.sources[0]][1] < 0.9
-
-
-def test_greedy_merge_takes_a_pair_and_its_mirror_pair_together():
-    """Body bone 0 on the plane, mirrored legs 1 | 2 hanging from it, each with a lower bone 3 | 4. Greedy merges
-    each bone once per call, so of the two legs moving with the body only one merges; with the partners both
-    do, and the lower bones (not candidates) stay."""
-    rng = np.random.default_rng(8)
-    labels = rng.choice(5, 500)
-    W = _hard_weights(labels, 5)
-    C = np.array([[0.0, 0, 0], [0, -1, 0.3], [0, -1, -0.3], [0, -2, 0.3], [0, -2, -0.3]])
-    Q = np.stack([np.eye(3)] * 5)
-    parents = np.array([-1, 0, 0, 1, 2])
-    Sim = np.full((5, 5), 0.5)
-    Sim[0, 1] = Sim[1, 0] = 0.99
-    Sim[0, 2] = Sim[2, 0] = 0.98
-    np.fill_diagonal(Sim, 1.0)
-    m = sk.mirror_partners(C, (np.array([0.0, 0, 1]), 0.0), tol=0.1)
-    assert m.tolist() == [0, 2, 1, 4, 3]
-    plain = sk.merge_bones(Sim, W, C, Q, parents, t_o=0.95)
-    both = sk.merge_bones(Sim, W, C, Q, parents, t_o=0.95, partners=m)
-    assert [[i for i, _ in src] for src in plain.sources] == [[0, 1], [2], [3], [4]]
-    assert [[i for i, _ in src] for src in both.sources] == [[0, 1, 2], [3], [4]]
-    assert both.parents.tolist() == [-1, 0, 0]
-    # the mirror pair is only taken along when it is a candidate itself
-    Sim[0, 2] = Sim[2, 0] = 0.9
-    assert [[i for i, _ in src] for src in sk.merge_bones(Sim, W, C, Q, parents, t_o=0.95, partners=m).sources] == \
-        [[0, 1], [2], [3], [4]]
-    with pytest.raises(ValueError, match="partners"):
-        sk.merge_bones(Sim, W, C, Q, parents, partners=m[:3])
+    with pytest.raises(ValueError, match="temperature"):
+        sk.merge_bones(Sim, W, C, Q, parents, temperature=0.0)
 
 
 def _short_middle(n_long=100, n_short=5):
@@ -480,28 +366,6 @@ def test_create_joints_leaves_no_half_shorter_than_min_length():
     assert sk.create_joints(L).tolist() == [False, True, False]  # the paper's relative test alone
     assert sk.create_joints(L, min_length=0.06).tolist() == [False, True, False]  # halves 0.0625 >= 0.06
     assert not sk.create_joints(L, min_length=0.07).any()  # halves would be 0.0625 < 0.07
-
-
-def test_mirror_partners_pairs_mutual_reflections_within_tol():
-    """Two legs mirrored across z = 0 pair up; a bone on the plane, a bone without a partner and a bone whose
-    nearest reflection is taken by a closer one map to themselves; any rigid motion of bones and plane
-    together gives the same pairs."""
-    C = np.array([[0.0, 0.3, 0.5],  # 0 <-> 1
-                  [0.04, 0.3, -0.5],
-                  [1.0, 0.0, 0.02],  # near the plane: its own reflection is nearest
-                  [2.0, 0.0, 0.4],  # nothing near its reflection
-                  [0.1, 0.3, -0.5]])  # its reflection's nearest is 0, which pairs with 1 (0.04 away)
-    plane = (np.array([0.0, 0.0, 2.0]), 0.0)  # unnormalised normal
-    assert sk.mirror_partners(C, plane, tol=0.1).tolist() == [1, 0, 2, 3, 4]
-    assert sk.mirror_partners(C, plane, tol=0.01).tolist() == [0, 1, 2, 3, 4]  # 0 and 1: 0.04 apart
-    R = axis_angle_to_matrix(torch.tensor([0.3, -1.1, 0.7], dtype=torch.float64)).numpy()
-    t = np.array([0.5, -2.0, 1.0])
-    n = R @ np.array([0.0, 0.0, 1.0])
-    assert sk.mirror_partners(C @ R.T + t, (3.0 * n, 3.0 * float(n @ t)), tol=0.1).tolist() == [1, 0, 2, 3, 4]
-    with pytest.raises(ValueError, match="normal"):
-        sk.mirror_partners(C, (np.zeros(3), 0.0), tol=0.1)
-    with pytest.raises(ValueError, match="tol"):
-        sk.mirror_partners(C, plane, tol=-1.0)
 
 
 # -------------------------------------------------------------------------------------------------
@@ -625,11 +489,6 @@ def test_upsample_splits_every_bone_along_principal_axis():
     # the halves are thinner along x than across
     for Qb in e.precisions:
         assert Qb[0, 0] > 0 and np.all(np.linalg.eigvalsh(Qb) > 0)
-    # only the longest bones with a relative threshold
-    X2 = X.copy()
-    X2[X2[:, 0] > 2, 0] = 2 + (X2[X2[:, 0] > 2, 0] - 2) * 3
-    e2 = sk.upsample_skeleton(X2, W, C, Q, np.array([-1, 0, 1]), min_relative_extent=0.8)
-    assert e2.num_bones == 4 and [s[0][0] for s in e2.sources] == [0, 1, 2, 2]
 
 
 # -------------------------------------------------------------------------------------------------
@@ -1059,7 +918,7 @@ def test_remap_carries_adam_state_for_unchanged_bone():
     _steps(m, opt, target, 4)
     X, W = m.verts.detach(), m.skinning().detach()
     C, Q = m.bone_centers.detach(), m.precisions().detach()
-    e = sk.upsample_skeleton(X, W, C, Q, np.array([-1, 0]), min_relative_extent=2.0)
+    e = sk.upsample_skeleton(X, W, C, Q, np.array([-1, 0]), min_section_vertices=len(X))
     assert not e.changed
     # split only bone 1 (grow: it is a leaf; its reference extent is tiny)
     e = sk.grow_skeleton(X, W, C, Q, np.array([-1, 0]), np.array([1e9, 1e-3]), sections=2)
