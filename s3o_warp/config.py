@@ -1,34 +1,75 @@
-"""One configuration dataclass tree for every hyper-parameter, with its default.
+"""Every setting a user may change, in one dataclass tree, with its default, its type and its range.
 
-Precedence: defaults < preset < ``--config`` TOML < command-line flags. Every field has a one-line
-docstring (the comment under it) that becomes its ``--help`` text.
+Precedence: defaults < preset < ``--config`` TOML < ``--set`` flags. Every field has a docstring (the string under
+it). Choices are ``Literal``; numeric ranges are ``Annotated[..., Bounds(...)]``. :func:`check` refuses a wrong
+type, choice, range or combination in one line that names the key, and runs before any work of a fit (and at the
+end of :func:`make_config`). This module imports nothing of the method.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
+import tomllib
+import types
+import typing
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Literal
+
+import tomli_w
+
+from s3o_warp.errors import ConfigError
+from s3o_warp.io import write_bytes
+
+
+@dataclass(frozen=True)
+class Bounds:
+    """The range of a numeric setting: ``lo <= x`` (``lo < x`` when ``lo_open``), likewise ``x <= hi``."""
+
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+
+    def holds(self, x) -> bool:
+        if math.isnan(x):
+            return False
+        if self.lo is not None and (x <= self.lo if self.lo_open else x < self.lo):
+            return False
+        return self.hi is None or (x < self.hi if self.hi_open else x <= self.hi)
+
+    def __str__(self) -> str:
+        lo = "" if self.lo is None else f"{'>' if self.lo_open else '>='} {self.lo:g}"
+        hi = "" if self.hi is None else f"{'<' if self.hi_open else '<='} {self.hi:g}"
+        return " and ".join(s for s in (lo, hi) if s)
+
+
+NONNEG = Bounds(0)
+POSITIVE = Bounds(0, lo_open=True)
+COUNT = Bounds(1)
 
 
 @dataclass
 class DataConfig:
     """How a sequence is read, cropped and given optical flow (``s3o_warp.video``)."""
 
-    object_id: int | None = None
+    object_id: Annotated[int, NONNEG] | None = None
     """For palette (multi-object) masks such as DAVIS-2017: the object's palette index; None = any non-zero / > 127."""
-    crop_size: int = 256
+    crop_size: Annotated[int, Bounds(16)] = 256
     """Working resolution: each frame's square crop is resized to crop_size x crop_size pixels."""
-    crop_scale: float = 1.2
+    crop_scale: Annotated[float, Bounds(1)] = 1.2
     """Side of the square crop as a multiple of the mask bounding box's longer side."""
-    flow_preset: str = "medium"
+    flow_preset: Literal["ultrafast", "fast", "medium"] = "medium"
     """OpenCV DIS optical-flow preset: ultrafast, fast or medium."""
-    fps: float = 30.0
+    fps: Annotated[float, POSITIVE] = 30.0
     """Frame rate of image-folder sequences (DAVIS included); a video file's own frame rate wins when it has one."""
-    mask_threshold: int = 127
+    mask_threshold: Annotated[int, Bounds(0, 254)] = 127
     """Grey-level and RGB masks: foreground = value > mask_threshold (0-255 scale)."""
     largest_blob: bool = True
     """Masks with several disconnected blobs: keep the largest and the fragments near it (a warning names the
     frames); false keeps all."""
-    resident_max_frames: int = 400
+    resident_max_frames: Annotated[int, NONNEG] = 400
     """Sequences up to this many frames keep crops and flow in (device) memory; longer ones are streamed from disk."""
 
 
@@ -36,25 +77,25 @@ class DataConfig:
 class CoarseConfig:
     """Phase 1 (paper 3.2): 2D skeleton of the canonical frame, lift to ellipsoids, coarse shape fit."""
 
-    target_vertices: int = 1200
+    target_vertices: Annotated[int, Bounds(100)] = 1200
     """Vertex count of the initial mesh (the union of the lifted ellipsoids; its marching-cubes resolution is searched
     for it), and of every resampling unless motion.resample_vertices is set (>= 100)."""
-    fov_degrees: float = 45.0
+    fov_degrees: Annotated[float, Bounds(0, 180, lo_open=True, hi_open=True)] = 45.0
     """Initial horizontal field of view of the full frame, used to initialise the focal length."""
-    steps: int = 150
+    steps: Annotated[int, NONNEG] = 150
     """Optimisation steps of the coarse shape fit on the canonical frame."""
-    lr: float = 0.01
+    lr: Annotated[float, NONNEG] = 0.01
     """Adam learning rate of the coarse shape fit (vertex offsets)."""
-    w_sil: float = 1.0
+    w_sil: Annotated[float, NONNEG] = 1.0
     """Weight of the silhouette loss."""
-    w_part: float = 0.5
+    w_part: Annotated[float, NONNEG] = 0.5
     """Weight of the part-silhouette loss (parts = pixels nearest to each 2D skeleton edge)."""
-    w_sym: float = 0.5
+    w_sym: Annotated[float, NONNEG] = 0.5
     """Weight of the symmetry loss (eq. 16)."""
-    w_lap: float = 2.0
+    w_lap: Annotated[float, NONNEG] = 2.0
     """Weight of the Laplacian smoothing loss (eq. 17), on the change from the lifted shape (L(X - X_init)): the
     Laplacian of the shape itself is smallest for a flat mesh, and one view holds no depth."""
-    canonical_frame: int | None = None
+    canonical_frame: Annotated[int, NONNEG] | None = None
     """Index of the canonical frame (the one whose 2D skeleton is lifted); None = chosen automatically (the most
     horizontal skeleton with the most leg pairs). Set it when the chosen frame shows two legs overlapping."""
 
@@ -63,57 +104,57 @@ class CoarseConfig:
 class MotionConfig:
     """Phase 2 (paper 3.3-3.4): warm-up with the mesh frozen, then shape, colour, camera and motion."""
 
-    batch_frames: int = 8
+    batch_frames: Annotated[int, COUNT] = 8
     """Frames per optimisation step."""
-    warmup_steps: int = 200
+    warmup_steps: Annotated[int, NONNEG] = 200
     """Steps with the mesh frozen (camera and motion only)."""
-    hypotheses: int = 7
+    hypotheses: Annotated[int, COUNT] = 7
     """Root-rotation hypotheses tried at the start of the warm-up (1 = off): each assumes the camera turns
     about the object's vertical axis at a constant rate; a short fit of the root and camera alone scores each by
     its optical-flow term over every frame, and the best is kept."""
-    hypothesis_max_rate: float = 3.0
+    hypothesis_max_rate: Annotated[float, NONNEG] = 3.0
     """Largest turn rate of the hypotheses, degrees per frame (rates spread evenly in +-this, 0 included)."""
-    hypothesis_steps: int = 30
+    hypothesis_steps: Annotated[int, NONNEG] = 30
     """Warm-up steps spent scoring each hypothesis."""
-    resample_epochs: int = 1
+    resample_epochs: Annotated[int, NONNEG] = 1
     """Even resampling of the canonical mesh (paper B) every this many epochs of the joint phase; 0 = never."""
-    resample_vertices: int = 0
+    resample_vertices: Annotated[int, NONNEG] = 0
     """Vertex count the resampled mesh aims at; 0 = the coarse mesh's count."""
     turn_rate: float | None = None
     """Known camera turn rate about the object's vertical axis, degrees per frame: used as is, no hypotheses scored."""
-    steps: int = 1200
+    steps: Annotated[int, NONNEG] = 1200
     """Steps of the joint shape + motion + camera phase after the warm-up."""
-    lr_motion: float = 0.01
+    lr_motion: Annotated[float, NONNEG] = 0.01
     """Adam learning rate of root and bone rotations/translations."""
-    lr_shape: float = 0.002
+    lr_shape: Annotated[float, NONNEG] = 0.002
     """Adam learning rate of the canonical vertices."""
-    lr_color: float = 0.02
+    lr_color: Annotated[float, NONNEG] = 0.02
     """Adam learning rate of the vertex-colour logits."""
-    lr_bones: float = 0.005
+    lr_bones: Annotated[float, NONNEG] = 0.005
     """Adam learning rate of the bone Gaussians (centres, orientations, scales)."""
-    lr_camera: float = 0.005
+    lr_camera: Annotated[float, NONNEG] = 0.005
     """Adam learning rate of the focal length (log) and principal points."""
-    principal_point: str = "frame"
+    principal_point: Literal["frame", "shared"] = "frame"
     """frame: a principal point per frame, in the crop (LASR's; it starts at each crop's centre, so the object sits
     on every frame's optical axis and its motion across the picture goes into the camera). shared: one principal
     point for the video in full-frame pixels, from the frame's centre, as a real camera has (not in the paper): the
     object's path across the picture is the root's, in camera space, and the exported camera's film offset is constant."""
-    sigma: float = 1.0
+    sigma: Annotated[float, POSITIVE] = 1.0
     """Soft-silhouette blur sigma in square crop pixels at the start of each phase."""
-    sigma_final: float = 0.1
+    sigma_final: Annotated[float, POSITIVE] = 0.1
     """Sigma at the end of each phase (geometric decay); SoftRas's aggregation grows the silhouette by about
     sqrt(sigma) pixels, which matters for legs a few pixels wide."""
-    w_sil: float = 1.0
+    w_sil: Annotated[float, NONNEG] = 1.0
     """Weight of the silhouette loss (mean squared error of the soft silhouette)."""
-    w_flow: float = 0.02
+    w_flow: Annotated[float, NONNEG] = 0.02
     """Weight of the optical-flow loss (confidence-weighted L2 of rendered vs observed flow, crop pixels)."""
-    w_color: float = 0.2
+    w_color: Annotated[float, NONNEG] = 0.2
     """Weight of the colour L1 loss."""
-    w_cover: float = 0.2
+    w_cover: Annotated[float, NONNEG] = 0.2
     """Weight of the mask-coverage loss (``losses.coverage_loss``, not in the paper): every mask pixel the hard
     render leaves uncovered pulls its nearest projected vertex (hidden ones included) towards it, from any
     distance; it frees a far leg glued behind the near one after a crossing (horse PCK-T 83-85 -> 91-92)."""
-    w_joint: float = 10.0
+    w_joint: Annotated[float, NONNEG] = 10.0
     """Weight of the joint-attachment loss (``losses.joint_attachment_loss``, not in the paper): each joint of
     the kinematic tree, moved by either of its two bones, lands in the same place (squared gap over the
     object's size squared), so a leg swings about its hip instead of sliding across the body (joints inside
@@ -123,20 +164,20 @@ class MotionConfig:
     the lift swing through its crossings instead of bouncing back (frames relabelled where the feet's paths cross
     in the image and that keeps their velocities, ``s3o_warp.crossings``); on the synthetic walks it lifts PCK-T
     by 6-8 points (README, Benchmarks)."""
-    w_rigid: float = 1.0
+    w_rigid: Annotated[float, NONNEG] = 1.0
     """Weight of the dynamic rigidity loss (eq. 1-2, corrected as in DESIGN.md)."""
-    rigidity: str = "dynamic"
+    rigidity: Literal["dynamic", "arap", "none"] = "dynamic"
     """Rigidity regulariser: dynamic (S3O), arap (the ablation) or none."""
-    w_lap: float = 1.0
+    w_lap: Annotated[float, NONNEG] = 1.0
     """Weight of the Laplacian smoothing loss on the canonical mesh's change from a reference shape (the mesh at the
     joint phase's start and after each even resampling)."""
-    w_sym: float = 0.2
+    w_sym: Annotated[float, NONNEG] = 0.2
     """Weight of the symmetry loss on the canonical mesh."""
-    w_smooth: float = 0.1
+    w_smooth: Annotated[float, NONNEG] = 0.1
     """Weight of the temporal smoothness of root and bone motion between consecutive frames."""
-    w_bone_reg: float = 0.01
+    w_bone_reg: Annotated[float, NONNEG] = 0.01
     """Weight of the penalty on bone translation magnitude (keeps bones rotating about their centres)."""
-    log_every: int = 10
+    log_every: Annotated[int, COUNT] = 10
     """Write a log.jsonl line every this many steps."""
 
 
@@ -144,20 +185,20 @@ class MotionConfig:
 class SkeletonConfig:
     """Skeleton learning, the M-step (paper 3.4, Algorithm 1), between epochs of the joint phase."""
 
-    method: str = "s3o"
+    method: Literal["s3o", "virtual", "fixed"] = "s3o"
     """s3o (learned physical skeleton), virtual (LASR-like k-means bones, no skeleton learning) or fixed (coarse bones kept)."""
-    epochs: int = 6
+    epochs: Annotated[int, COUNT] = 6
     """Epochs of the joint phase; an M-step runs after every epoch but the last."""
-    e1: int = 2
+    e1: Annotated[int, NONNEG] = 2
     """Epoch of the one skeleton upsampling; before it: shifting and growth, after it: merge and joints."""
-    t_o: float = 0.95
+    t_o: Annotated[float, Bounds(-1, 1)] = 0.95
     """Merge bones whose flow-derived motion directions have cosine > t_o in every frame (0.99 finer, 0.90 coarser)."""
-    t_d: float = 0.15
+    t_d: Annotated[float, POSITIVE] = 0.15
     """Create a joint in a bone whose length varies over frames by more than t_d of its median length (the paper's
     0.25 gives the legs fewer joints)."""
-    t_r: float = 0.4
+    t_r: Annotated[float, Bounds(0, 1, lo_open=True)] = 0.4
     """Joint position: mean of the vertices with both bones' weights >= t_r."""
-    t_u: float = 0.4
+    t_u: Annotated[float, NONNEG] = 0.4
     """Not in the paper: also create a joint in a bone whose part's two halves move relative to each other in a way
     the one rigid bone does not reproduce: when the unexplained share of the halves' relative image motion,
     |observed - fitted| / max(|observed|, |fitted|), median over the frames both halves are seen in, is above t_u
@@ -165,9 +206,9 @@ class SkeletonConfig:
     follow at all). Eq. 6 cannot split an end bone (one joint: a leg's shin and paw), whose length runs from its
     joint to its far end, which both move with the bone, and sees a knee inside an inner bone only through its
     end-to-end length, which a 30-degree bend half way along shortens by 3 % (t_d is 15 %)."""
-    max_bones: int = 40
+    max_bones: Annotated[int, COUNT] = 40
     """Never grow the skeleton beyond this many bones."""
-    virtual_bones: int = 25
+    virtual_bones: Annotated[int, COUNT] = 25
     """Bone count of the virtual-bones baseline."""
 
 
@@ -175,9 +216,9 @@ class SkeletonConfig:
 class OutputConfig:
     """What the run directory receives."""
 
-    checkpoint_every: int = 200
+    checkpoint_every: Annotated[int, COUNT] = 200
     """Write a checkpoint every this many steps (and at every phase boundary)."""
-    keep_checkpoints: int = 2
+    keep_checkpoints: Annotated[int, COUNT] = 2
     """How many checkpoints to keep."""
     render_video: bool = True
     """Write renders/ (overlay video, loss plot)."""
@@ -195,7 +236,7 @@ class Config:
     motion: MotionConfig = field(default_factory=MotionConfig)
     skeleton: SkeletonConfig = field(default_factory=SkeletonConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
-    seed: int = 0
+    seed: Annotated[int, NONNEG] = 0
     """Seed for every random choice."""
     repeatable: bool = True
     """On the CPU, run torch's deterministic algorithms during the fit so one seed gives the same run every time.
@@ -241,16 +282,8 @@ PRESETS: dict[str, tuple[str, dict]] = {
 }
 
 
-def _is_dataclass_field(obj, name: str) -> bool:
-    import dataclasses
-
-    return dataclasses.is_dataclass(obj) and name in {f.name for f in dataclasses.fields(obj)}
-
-
 def to_dict(cfg) -> dict:
     """Plain nested dict of every resolved value (for ``config.toml``); None values are dropped."""
-    import dataclasses
-
     out = {}
     for f in dataclasses.fields(cfg):
         v = getattr(cfg, f.name)
@@ -261,60 +294,96 @@ def to_dict(cfg) -> dict:
     return out
 
 
-def _coerce(key: str, current, value, annotation: str):
-    """Convert ``value`` to the type of the field ``key`` or raise ConfigError naming the key."""
-    from s3o_warp.errors import ConfigError
+def _parts(hint):
+    """(base type, choices or None, Bounds or None, whether None is allowed) of a field's type hint."""
+    bounds = None
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        return (*_parts(args[0])[:3], len(args) < len(typing.get_args(hint)))
+    if typing.get_origin(hint) is Annotated:
+        hint, *extra = typing.get_args(hint)
+        bounds = next((e for e in extra if isinstance(e, Bounds)), None)
+    choices = None
+    if typing.get_origin(hint) is Literal:
+        choices = typing.get_args(hint)
+        hint = type(choices[0])
+    return hint, choices, bounds, False
 
-    ann = str(annotation)
-    want_none_ok = "None" in ann
-    if value is None or (isinstance(value, str) and value.lower() == "none" and want_none_ok):
-        if want_none_ok:
+
+def _coerce(key: str, current, value, hint):
+    """``value`` converted to the field's type and checked against its choices and range; ConfigError names the key."""
+    base, choices, bounds, optional = _parts(hint)
+    if value is None or (optional and isinstance(value, str) and value.lower() == "none"):
+        if optional:
             return None
         raise ConfigError(f"config key '{key}' cannot be none; give a value like {current!r}")
-    base = ann.replace("| None", "").replace("None |", "").strip()
     try:
-        if base == "bool":
-            if isinstance(value, bool):
-                return value
+        if base is bool:
             if isinstance(value, str) and value.lower() in ("true", "1", "yes", "false", "0", "no"):
-                return value.lower() in ("true", "1", "yes")
-            raise ValueError
-        if base == "int":
+                value = value.lower() in ("true", "1", "yes")
+            elif not isinstance(value, bool):
+                raise ValueError
+        elif base is int:
             if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
                 raise ValueError
-            return int(value)
-        if base == "float":
+            value = int(value)
+        elif base is float:
             if isinstance(value, bool):
                 raise ValueError
-            return float(value)
-        if base == "str":
-            if not isinstance(value, str):
-                raise ValueError
-            return value
+            value = float(value)
+        elif not isinstance(value, str):
+            raise ValueError
     except (TypeError, ValueError):
-        raise ConfigError(
-            f"config key '{key}' must be {base}, got {value!r} ({type(value).__name__}); e.g. {key}={current!r}"
-        ) from None
+        raise ConfigError(f"config key '{key}' must be {base.__name__}, got {value!r} ({type(value).__name__}); "
+                          f"e.g. {key}={current!r}") from None
+    if choices is not None and value not in choices:
+        raise ConfigError(f"config key '{key}' must be one of {', '.join(map(repr, choices))}, got {value!r}")
+    if bounds is not None and not bounds.holds(value):
+        raise ConfigError(f"config key '{key}' must be {bounds}, got {value!r}")
     return value
 
 
+def _settings(obj, prefix: str = ""):
+    """(dotted key, owning dataclass, field name, type hint) of every setting under ``obj``."""
+    hints = typing.get_type_hints(type(obj), include_extras=True)
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        if dataclasses.is_dataclass(v):
+            yield from _settings(v, f"{prefix}{f.name}.")
+        else:
+            yield f"{prefix}{f.name}", obj, f.name, hints[f.name]
+
+
 def set_value(cfg, key: str, value) -> None:
-    """Set a dotted key such as ``motion.steps``; unknown keys and wrong types raise ConfigError."""
-    import dataclasses
+    """Set a dotted key such as ``motion.steps``; unknown keys, wrong types, choices and ranges raise ConfigError."""
+    for k, owner, name, hint in _settings(cfg):
+        if k == key:
+            setattr(owner, name, _coerce(key, getattr(owner, name), value, hint))
+            return
+    section = key.rsplit(".", 1)[0] if "." in key else ""
+    known = sorted({k.rsplit(".", 1)[0] for k, *_ in _settings(cfg) if "." in k})
+    where = f" (no section '{section}'; sections: {', '.join(known)})" if section and section not in known else ""
+    raise ConfigError(f"unknown config key '{key}'{where}; see config.toml of a run or s3o_warp/config.py for valid keys")
 
-    from s3o_warp.errors import ConfigError
 
-    parts = key.split(".")
-    obj = cfg
-    for p in parts[:-1]:
-        if not _is_dataclass_field(obj, p) or not dataclasses.is_dataclass(getattr(obj, p)):
-            raise ConfigError(f"unknown config key '{key}' (no section '{p}'); see config.toml of a run for valid keys")
-        obj = getattr(obj, p)
-    name = parts[-1]
-    if not _is_dataclass_field(obj, name) or dataclasses.is_dataclass(getattr(obj, name)):
-        raise ConfigError(f"unknown config key '{key}'; see config.toml of a run for valid keys")
-    ann = {f.name: f.type for f in dataclasses.fields(obj)}[name]
-    setattr(obj, name, _coerce(key, getattr(obj, name), value, ann))
+def check_fields(obj, prefix: str = ""):
+    """Every setting's type, choice and range under ``obj`` (a section such as a DataConfig with ``prefix="data."``,
+    or the whole tree); the first problem is one ConfigError line naming the key and what it may be."""
+    for key, owner, name, hint in _settings(obj, prefix):
+        _coerce(key, getattr(owner, name), getattr(owner, name), hint)
+    return obj
+
+
+def check(cfg: Config) -> Config:
+    """:func:`check_fields` of the whole tree, then the combinations of settings. Called by :func:`make_config`
+    and by the fit before any work, so a bad setting writes nothing."""
+    check_fields(cfg)
+    if cfg.preset not in PRESETS:
+        raise ConfigError(f"config key 'preset' must be one of {', '.join(map(repr, PRESETS))}, got {cfg.preset!r}")
+    if 0 < cfg.motion.resample_vertices < 20:
+        raise ConfigError(f"config key 'motion.resample_vertices' must be 0 (the coarse mesh's count) or >= 20, got "
+                          f"{cfg.motion.resample_vertices}")
+    return cfg
 
 
 def apply_dict(cfg, d: dict, prefix: str = "") -> None:
@@ -329,11 +398,6 @@ def apply_dict(cfg, d: dict, prefix: str = "") -> None:
 
 def load_toml(path) -> dict:
     """Read a TOML file into a dict; a syntax error raises ConfigError naming the file."""
-    import tomllib
-    from pathlib import Path
-
-    from s3o_warp.errors import ConfigError
-
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"config file {path} does not exist; pass an existing TOML file to --config")
@@ -344,9 +408,7 @@ def load_toml(path) -> dict:
 
 
 def make_config(preset: str = "default", toml_path=None, overrides: list[str] | None = None, seed: int | None = None) -> Config:
-    """Defaults < preset < TOML file < ``key=value`` overrides (< an explicit seed)."""
-    from s3o_warp.errors import ConfigError
-
+    """Defaults < preset < TOML file < ``key=value`` overrides (< an explicit seed), checked (:func:`check`)."""
     cfg = Config()
     if preset not in PRESETS:
         raise ConfigError(f"unknown preset '{preset}'; choose one of {', '.join(PRESETS)}")
@@ -361,18 +423,10 @@ def make_config(preset: str = "default", toml_path=None, overrides: list[str] | 
         k, v = item.split("=", 1)
         set_value(cfg, k.strip(), v.strip())
     if seed is not None:
-        cfg.seed = int(seed)
-    return cfg
+        set_value(cfg, "seed", seed)
+    return check(cfg)
 
 
 def save_toml(cfg, path) -> None:
     """Write every resolved setting to ``path`` atomically (temp name + rename)."""
-    import os
-    from pathlib import Path
-
-    import tomli_w
-
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(tomli_w.dumps(to_dict(cfg)).encode())
-    os.replace(tmp, path)
+    write_bytes(path, tomli_w.dumps(to_dict(cfg)).encode())

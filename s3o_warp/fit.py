@@ -23,7 +23,7 @@ import torch
 from tqdm import tqdm
 
 from s3o_warp import losses as L
-from s3o_warp.config import Config, save_toml, to_dict
+from s3o_warp.config import Config, check, save_toml, to_dict
 from s3o_warp.errors import ConfigError, InputError
 from s3o_warp.geometry import project
 from s3o_warp.model import ModelInit, S3OModel, root_for_shared_principal_point
@@ -134,6 +134,9 @@ def prepare_data(sequence_dir: Path, cfg: Config, run_dir: Path, device: torch.d
     T = seq.num_frames
     if T < 2:
         raise InputError(f"sequence {sequence_dir} has {T} frame(s); the fit needs at least 2")
+    if cfg.coarse.canonical_frame is not None and cfg.coarse.canonical_frame >= T:
+        raise ConfigError(f"coarse.canonical_frame={cfg.coarse.canonical_frame}: the sequence has frames 0-{T - 1}; "
+                          "pick one of them or leave it unset for the automatic choice")
     S = cfg.data.crop_size
     resident = T <= cfg.data.resident_max_frames
     mask_crops = np.zeros((T, S, S), np.bool_)
@@ -209,10 +212,7 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
     if cfg.coarse.canonical_frame is None:
         c, _ratios = coarse.canonical_frame(list(masks), settings, progress=False)
     else:
-        c = int(cfg.coarse.canonical_frame)
-        if not 0 <= c < len(masks):
-            raise ConfigError(f"coarse.canonical_frame={c}: the sequence has frames 0-{len(masks) - 1}; pick one of "
-                              "them or leave it unset for the automatic choice")
+        c = int(cfg.coarse.canonical_frame)  # within the sequence: prepare_data checked it
         log.info("canonical frame %d (coarse.canonical_frame)", c)
     skel = coarse.skeleton_2d(masks[c], settings)
     S = data.crop_size
@@ -351,14 +351,7 @@ class Fitter:
         from s3o_warp.kernels.regularisers import mesh_edges
 
         self.data, self.cfg, self.run_dir, self.device = data, cfg, Path(run_dir), device
-        if cfg.motion.w_joint < 0:
-            raise ConfigError(f"motion.w_joint must be >= 0 (0 = off), got {cfg.motion.w_joint}")
-        if cfg.motion.resample_vertices < 0:
-            raise ConfigError(f"motion.resample_vertices must be >= 0 (a vertex count; 0 = the coarse mesh's), got "
-                              f"{cfg.motion.resample_vertices}")
-        if cfg.motion.principal_point not in ("frame", "shared"):
-            raise ConfigError(f"motion.principal_point must be 'frame' (one per frame, LASR's) or 'shared' (one for the "
-                              f"video), got {cfg.motion.principal_point!r}")
+        check(cfg)  # a Config built in code, not by make_config: refused before any work
         self.coarse = coarse_res
         self.model = S3OModel(coarse_res.init).to(device)
         self.edges = mesh_edges(self.model.faces).to(device)
@@ -1114,6 +1107,7 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
     before the first merge) and its cached flow, so a t_o study pays for the shared part once (the rest of the run directory is this fit's own). With
     ``resume`` a checkpoint of ``out_dir`` itself comes first.
     """
+    check(cfg)  # every setting, before anything is read or written
     out_dir = Path(out_dir)
     _check_writable(out_dir)
     branch = _branch_checkpoint(Path(branch_from), out_dir, cfg) if branch_from is not None else None

@@ -42,7 +42,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 from tqdm.auto import tqdm
 
-from s3o_warp.config import DataConfig
+from s3o_warp.config import DataConfig, check_fields
 from s3o_warp.errors import ConfigError, InputError
 
 log = logging.getLogger(__name__)
@@ -107,22 +107,7 @@ def __getattr__(name: str) -> Any:
 
 def check_data_config(cfg: DataConfig) -> None:
     """Raise ConfigError (naming ``data.<key>``) for a DataConfig value that cannot work."""
-    if cfg.object_id is not None and (not isinstance(cfg.object_id, int) or cfg.object_id < 0):
-        raise ConfigError(f"data.object_id must be a palette index >= 0 or None, got {cfg.object_id!r}")
-    if not isinstance(cfg.crop_size, int) or cfg.crop_size < 16:
-        raise ConfigError(f"data.crop_size must be an integer >= 16 (pixels), got {cfg.crop_size!r}")
-    if not cfg.crop_scale >= 1.0:
-        raise ConfigError(
-            f"data.crop_scale must be >= 1 so the crop holds the whole mask box, got {cfg.crop_scale!r}"
-        )
-    if cfg.flow_preset not in FLOW_PRESETS:
-        raise ConfigError(
-            f"data.flow_preset must be one of {', '.join(FLOW_PRESETS)}, got {cfg.flow_preset!r}"
-        )
-    if not cfg.fps > 0:
-        raise ConfigError(f"data.fps must be > 0 (frames per second), got {cfg.fps!r}")
-    if not isinstance(cfg.mask_threshold, int) or not 0 <= cfg.mask_threshold < 255:
-        raise ConfigError(f"data.mask_threshold must be an integer in [0, 254], got {cfg.mask_threshold!r}")
+    check_fields(cfg, "data.")
 
 
 # --------------------------------------------------------------------------------------------------

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from s3o_warp.config import PRESETS, Config, make_config, save_toml, to_dict
+from s3o_warp.config import PRESETS, Config, check, make_config, save_toml, to_dict
 from s3o_warp.errors import ConfigError
 
 
@@ -65,3 +65,61 @@ def test_the_config_imports_nothing_of_the_method():
     code = "import sys, s3o_warp.config; print(sorted(m for m in sys.modules if m.startswith('s3o_warp.')))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "['s3o_warp.config']", out
+
+
+def _bad_values():
+    """(key, a value outside its choices or range) for every setting that has choices or a range."""
+    from s3o_warp.config import _parts, _settings
+
+    out = []
+    for key, _owner, _name, hint in _settings(Config()):
+        _base, choices, bounds, _optional = _parts(hint)
+        if choices is not None:
+            out.append((key, "nosuch"))
+        if bounds is not None and bounds.lo is not None:
+            out.append((key, bounds.lo if bounds.lo_open else bounds.lo - 1))
+        if bounds is not None and bounds.hi is not None:
+            out.append((key, bounds.hi if bounds.hi_open else bounds.hi + 1))
+    return out
+
+
+@pytest.mark.parametrize("key, value", _bad_values())
+def test_every_choice_and_range_is_refused_naming_the_key(key, value):
+    with pytest.raises(ConfigError, match=rf"config key '{key}' must be "):
+        make_config("default", overrides=[f"{key}={value}"])
+
+
+def test_a_config_changed_in_code_is_checked_too():
+    cfg = make_config("default")
+    cfg.motion.rigidity = "elastic"
+    with pytest.raises(ConfigError, match="'motion.rigidity' must be one of 'dynamic', 'arap', 'none'"):
+        check(cfg)
+    cfg = make_config("default")
+    cfg.motion.resample_vertices = 5
+    with pytest.raises(ConfigError, match="'motion.resample_vertices' must be 0"):
+        check(cfg)
+
+
+def test_the_settings_are_the_ones_a_user_sets():
+    from s3o_warp.config import _settings
+
+    assert len(list(_settings(Config()))) < 70
+
+
+def test_a_bad_setting_writes_nothing(tiny_sequence, tmp_path, capsys):
+    """The command line and a fit given a Config built in code both stop before any work: no run directory."""
+    import torch
+
+    from s3o_warp.cli import main
+    from s3o_warp.fit import fit
+
+    out = tmp_path / "run"
+    rc = main([str(tiny_sequence), "--out", str(out), "--device", "cpu", "--set", "motion.principal_point=centre"])
+    assert rc == 2 and not out.exists()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "motion.principal_point" in err[0] and "'frame', 'shared'" in err[0]
+    cfg = make_config("smoke")
+    cfg.skeleton.t_o = 1.5
+    with pytest.raises(ConfigError, match="skeleton.t_o"):
+        fit(tiny_sequence, out, cfg, torch.device("cpu"))
+    assert not out.exists()

@@ -272,15 +272,3 @@ def test_moments_of_rewritten_frames_are_reset(tiny_sequence, tmp_path, monkeypa
         mask = torch.ones(st[key].shape[:2], dtype=torch.bool)
         mask[2, a] = False
         assert torch.equal(st[key][mask], before[key][mask])
-
-
-@pytest.mark.parametrize("bad", ["motion.w_joint=-1"])
-def test_bad_joint_weight_is_refused(tiny_sequence, tmp_path, bad):
-    from s3o_warp.errors import ConfigError
-    from s3o_warp.fit import Fitter, coarse_model, prepare_data
-
-    cfg = _cfg()
-    data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
-    k = bad.split("=")[0]
-    with pytest.raises(ConfigError, match=k.replace(".", r"\.")):
-        Fitter(data, coarse_model(data, cfg), _cfg(**{k: bad.split("=")[1]}), tmp_path, torch.device("cpu"))
