@@ -20,7 +20,7 @@ from typing import Annotated, Literal
 import tomli_w
 
 from s3o_warp.errors import ConfigError
-from s3o_warp.io import write_bytes
+from s3o_warp.data.io import write_bytes
 
 
 @dataclass(frozen=True)
@@ -52,7 +52,7 @@ COUNT = Bounds(1)
 
 @dataclass
 class DataConfig:
-    """How a sequence is read, cropped and given optical flow (``s3o_warp.video``)."""
+    """How a sequence is read, cropped and given optical flow (``s3o_warp.data.sequence``)."""
 
     object_id: Annotated[int, NONNEG] | None = None
     """For palette (multi-object) masks such as DAVIS-2017: the object's palette index; None = any non-zero / > 127."""
@@ -162,7 +162,7 @@ class MotionConfig:
     resolve_crossings: bool = True
     """After the warm-up, and once more after the first epoch of the joint phase, let each symmetric limb pair of
     the lift swing through its crossings instead of bouncing back (frames relabelled where the feet's paths cross
-    in the image and that keeps their velocities, ``s3o_warp.crossings``); on the synthetic walks it lifts PCK-T
+    in the image and that keeps their velocities, ``s3o_warp.motion.crossings``); on the synthetic walks it lifts PCK-T
     by 6-8 points (README, Benchmarks)."""
     w_rigid: Annotated[float, NONNEG] = 1.0
     """Weight of the dynamic rigidity loss (eq. 1-2, corrected as in DESIGN.md)."""

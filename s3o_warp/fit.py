@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from s3o_warp import losses as L
+from s3o_warp.motion import losses as L
 from s3o_warp.config import Config, check, save_toml, to_dict
 from s3o_warp.errors import ConfigError, InputError
 from s3o_warp.geometry import project
@@ -127,7 +127,7 @@ def prepare_data(sequence_dir: Path, cfg: Config, run_dir: Path, device: torch.d
     Sequences of up to ``data.resident_max_frames`` frames live in (device) memory; longer ones are
     streamed: crops go to a memory-mapped file in ``<run>/cache`` and flow stays in its per-pair cache.
     """
-    from s3o_warp import video
+    from s3o_warp.data import sequence as video
 
     open_kwargs = {"masks": masks, "name": name}
     seq = video.open_sequence(sequence_dir, cfg=cfg.data, **open_kwargs)
@@ -276,8 +276,8 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
 
 def _limb_pairs(lifted, bones) -> tuple:
     """The lift's symmetric limb pairs as ``crossings.LimbPair`` (rest axis from the shared junction)."""
-    from s3o_warp.coarse_lift import edge_ends
-    from s3o_warp.crossings import LimbPair
+    from s3o_warp.coarse.lift import edge_ends
+    from s3o_warp.motion.crossings import LimbPair
 
     ends = edge_ends(lifted)
     bone_of_edge = {int(e): b for b, e in enumerate(np.asarray(bones.edge_of_bone))}
@@ -368,7 +368,7 @@ class Fitter:
         self._bad = 0
         self._pending_m_step = False  # a branch checkpoint was loaded: its M-step runs before the next step
         self._good = None
-        from s3o_warp.mstep import SkeletonState, refresh_joints, virtual_bones_init
+        from s3o_warp.skeleton.mstep import SkeletonState, refresh_joints, virtual_bones_init
 
         parents = np.asarray(coarse_res.parents, np.int64)
         if cfg.skeleton.method == "virtual":
@@ -430,7 +430,7 @@ class Fitter:
 
         Only the lift's bones have parts: with ``skeleton.method=virtual`` (k-means bones) nothing moves.
         """
-        from s3o_warp.skeleton_edit import fit_bones_to_parts, precision_to_quat_scales
+        from s3o_warp.skeleton.edit import fit_bones_to_parts, precision_to_quat_scales
 
         m = self.model
         if self.cfg.skeleton.method != "s3o" or m.bone_centers.shape[0] != len(self.coarse.parents):
@@ -735,16 +735,16 @@ class Fitter:
     def final_skeleton(self) -> None:
         """The shape moved since the last M-step: bones left owning no vertex go (not in the paper), and the joints
         are placed on the final mesh."""
-        from s3o_warp.mstep import prune_empty_bones, refresh_joints
+        from s3o_warp.skeleton.mstep import prune_empty_bones, refresh_joints
 
         sc = self.cfg.skeleton
         if not (sc.method == "s3o" and prune_empty_bones(self.model, self.opt, self.skel, sc)):
             refresh_joints(self.model, self.skel, sc)
 
     def resolve_crossings(self) -> list[int]:
-        """Paired limbs swing through their crossings instead of bouncing (``s3o_warp.crossings``); logs
+        """Paired limbs swing through their crossings instead of bouncing (``s3o_warp.motion.crossings``); logs
         and returns the number of exchanged frames per pair."""
-        from s3o_warp.crossings import resolve_crossings
+        from s3o_warp.motion.crossings import resolve_crossings
 
         m = self.model
         virtual = self.cfg.skeleton.method == "virtual"  # k-means bones: the lift's pairs do not apply
@@ -907,7 +907,7 @@ class Fitter:
         return sc.method == "s3o" and self.step // self.steps_per_epoch(n) - 1 == sc.e1 + 1
 
     def _m_step(self, n: int) -> None:
-        from s3o_warp.mstep import m_step
+        from s3o_warp.skeleton.mstep import m_step
 
         epoch = self.step // self.steps_per_epoch(n) - 1
         if m_step(self.model, self.opt, self.data, self.cfg, self.skel, epoch):
@@ -1038,7 +1038,7 @@ class Fitter:
         from s3o_warp.kernels.regularisers import mesh_edges
 
         self.edges = mesh_edges(self.model.faces).to(self.device)
-        from s3o_warp.mstep import SkeletonState
+        from s3o_warp.skeleton.mstep import SkeletonState
 
         self.skel = SkeletonState.from_dict(st["skeleton"])
         self.lap_ref = st["lap_ref"].to(self.device)
@@ -1101,7 +1101,7 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
     """Fit one sequence and write the run directory; returns the metrics dict.
 
     ``sequence_dir`` is a sequence folder, a DAVIS root (with ``name``), a DAVIS sequence folder, or a
-    video file / frame folder with a separate ``masks`` folder (see ``s3o_warp.video.open_sequence``).
+    video file / frame folder with a separate ``masks`` folder (see ``s3o_warp.data.sequence.open_sequence``).
     ``branch_from``: a finished or running fit of the same sequence whose settings differ from ``cfg`` only in
     ``skeleton.t_o``, ``t_u`` or ``t_d`` (:data:`BRANCH_MAY_DIFFER`: read only from the branch on); the fit starts from its ``checkpoints/branch.pt`` (the state just
     before the first merge) and its cached flow, so a t_o study pays for the shared part once (the rest of the run directory is this fit's own). With
@@ -1253,6 +1253,6 @@ class _stop_on_signals:
 
 def write_outputs(fitter: Fitter) -> dict:
     """Rig files, metrics and renders of a finished fit."""
-    from s3o_warp import outputs
+    from s3o_warp.run import outputs
 
     return outputs.write_run(fitter)

@@ -17,7 +17,7 @@ by marching a slightly dilated surface (level +offset, which thickens thin parts
 puts the vertices back on the true surface), then by a finer grid.
 
 Object frame and units are the input's; with ``symmetric_z`` the grid is mirror-symmetric about the
-plane z = 0 (the model's symmetry plane, see ``s3o_warp.coarse_lift``) and its two halves are
+plane z = 0 (the model's symmetry plane, see ``s3o_warp.coarse.lift``) and its two halves are
 marched separately, the lower one as the mirror image of an upper one, so a mirror-symmetric mesh
 gets a mirror-symmetric triangulation and stays mirror-symmetric vertex for vertex.
 

@@ -60,7 +60,7 @@ def prepare_case(case: str, work: Path) -> Path | None:
         if not (seq / "keypoints.json").is_file():
             import shutil
 
-            from s3o_warp.badja import badja_to_keypoints, write_keypoints
+            from s3o_warp.data.keypoints import badja_to_keypoints, write_keypoints
 
             seq.mkdir(parents=True, exist_ok=True)
             for sub, src in (("images", img), ("masks", DATA / "davis" / "Annotations" / "480p" / name)):

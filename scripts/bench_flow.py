@@ -5,9 +5,9 @@
                                  [--presets medium] [--crop-size S] [--out-dir DIR]
 
 The true flow comes from the sequence's ``ground_truth/``: each foreground pixel of frame t is a point on a
-face (z-buffer render of the true mesh, :func:`s3o_warp.metrics.render_frames`); the same barycentric point
+face (z-buffer render of the true mesh, :func:`s3o_warp.evaluation.metrics.render_frames`); the same barycentric point
 on the face at t+1, projected, is where it goes. The measured flow is what a fit uses: the crop flow of
-:func:`s3o_warp.video_flow.pair_flow` (DIS on the pair's canvas), taken back to frame pixels. Per pair and
+:func:`s3o_warp.data.flow.pair_flow` (DIS on the pair's canvas), taken back to frame pixels. Per pair and
 setting: ``ratio``, the median over foreground crop pixels of (measured . true) / |true|^2 (1 = the full
 motion; under 1: the motion is underestimated), the same
 weighted by |true|^2 (``ratio_weighted``: dominated by the fastest parts, the legs), and ``epe`` (median
@@ -39,7 +39,7 @@ def _bench_fit():
 
 def true_frame_flow(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, size: tuple[int, int]):
     """Per frame t < T-1: ``(H, W, 2)`` true flow t -> t+1 in frame pixels and ``(H, W)`` foreground."""
-    from s3o_warp.metrics import project, render_frames
+    from s3o_warp.evaluation.metrics import project, render_frames
 
     out = []
     for start, fi, bary in render_frames(verts[:-1], faces, K[:-1], size, progress=False):
@@ -59,8 +59,8 @@ def true_frame_flow(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, size: t
 def measure(seq_dir: Path, preset: str, finest_scale: int | None, crop_size: int, truth) -> dict:
     """Ratio and end-point error of the crop flow against ``truth`` (from :func:`true_frame_flow`)."""
     from s3o_warp.config import DataConfig
-    from s3o_warp.video import map_points, open_sequence
-    from s3o_warp.video_flow import FLOW_FB_SIGMA, make_dis, pair_flow
+    from s3o_warp.data.sequence import map_points, open_sequence
+    from s3o_warp.data.flow import FLOW_FB_SIGMA, make_dis, pair_flow
 
     cfg = DataConfig(crop_size=crop_size, flow_preset=preset)
     seq = open_sequence(seq_dir, cfg=cfg)
@@ -103,7 +103,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
     from s3o_warp.config import make_config
-    from s3o_warp.metrics import load_ground_truth, write_json
+    from s3o_warp.evaluation.metrics import load_ground_truth, write_json
 
     if args.crop_size is None:
         args.crop_size = make_config("default").data.crop_size

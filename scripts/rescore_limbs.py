@@ -4,7 +4,7 @@
 
     python scripts/rescore_limbs.py RUN_DIR:SEQUENCE_DIR [RUN_DIR:SEQUENCE_DIR ...] [--out FILE]
 
-Each run is evaluated as ``scripts/evaluate.py`` would (:func:`s3o_warp.metrics.evaluate_run`, written to
+Each run is evaluated as ``scripts/evaluate.py`` would (:func:`s3o_warp.evaluation.metrics.evaluate_run`, written to
 ``RUN_DIR/metrics-rescored.json``, the run's own ``metrics.json`` left as it is). One row per run goes to
 ``--out`` (default ``benchmarks/limbs-rescore-cpu.json``) with the command, the machine and the versions: per
 limb count (``limbs``, ``limbs_distinct``, ``limbs_framewise``) the covered limbs and each limb's ``tol_needed``,
@@ -21,7 +21,7 @@ import sys
 from pathlib import Path
 
 from s3o_warp.errors import InputError
-from s3o_warp.metrics import evaluate_run, read_json, write_json, write_metrics
+from s3o_warp.evaluation.metrics import evaluate_run, read_json, write_json, write_metrics
 from s3o_warp.provenance import REPO, cpu_name, git_commit, versions
 
 COUNTS = ("limbs", "limbs_distinct", "limbs_framewise")

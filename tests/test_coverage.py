@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from s3o_warp.kernels.nearest import nearest_point
-from s3o_warp.losses import coverage_loss
+from s3o_warp.motion.losses import coverage_loss
 from s3o_warp.reference.nearest import nearest_point_reference
 
 

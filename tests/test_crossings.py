@@ -1,11 +1,11 @@
-"""Paired limbs through their crossings (s3o_warp.crossings): labelling, exchanged motion, in place."""
+"""Paired limbs through their crossings (s3o_warp.motion.crossings): labelling, exchanged motion, in place."""
 
 import numpy as np
 import pytest
 import torch
 from conftest import smoke_config
 
-from s3o_warp.crossings import (
+from s3o_warp.motion.crossings import (
     LimbPair,
     crossing_labels,
     exchange_costs,
@@ -173,7 +173,7 @@ def test_resolve_crossings_in_the_image_where_depth_hides_the_crossing():
 
 def test_fit_projects_the_crossing_paths_like_the_model(tiny_sequence, tmp_path, monkeypatch):
     """The fit hands the step a projection equal to the model's full-frame one."""
-    import s3o_warp.crossings as X
+    import s3o_warp.motion.crossings as X
     from s3o_warp.fit import Fitter, coarse_model, prepare_data
 
     cfg = _cfg()
@@ -220,7 +220,7 @@ def test_fit_relabels_after_warmup_and_first_epoch_and_resets_moments(tiny_seque
     frames start afresh, the others are kept."""
     import json
 
-    import s3o_warp.crossings as X
+    import s3o_warp.motion.crossings as X
     from s3o_warp.fit import Fitter, coarse_model, prepare_data
 
     cfg = _cfg(**{"coarse.steps": 5, "motion.warmup_steps": 5, "motion.steps": 8, "skeleton.epochs": 2,
@@ -245,7 +245,7 @@ def test_fit_relabels_after_warmup_and_first_epoch_and_resets_moments(tiny_seque
 
 
 def test_moments_of_rewritten_frames_are_reset(tiny_sequence, tmp_path, monkeypatch):
-    import s3o_warp.crossings as X
+    import s3o_warp.motion.crossings as X
     from s3o_warp.fit import Fitter, coarse_model, prepare_data
 
     cfg = _cfg(**{"motion.resolve_crossings": True})

@@ -12,7 +12,7 @@ import pytest
 import torch
 from conftest import smoke_config
 
-from s3o_warp import video_flow
+from s3o_warp.data import flow as video_flow
 from s3o_warp.config import make_config
 from s3o_warp.errors import ConfigError, InputError
 from s3o_warp.fit import (
@@ -84,7 +84,7 @@ def test_bones_refit_to_their_coarse_parts_only_for_the_lift(tiny_sequence, tmp_
     """After the coarse fit the lift's bones move onto their labelled parts; the virtual baseline's k-means
     bones have no parts and stay where k-means put them, and its short fit runs through."""
     from s3o_warp.fit import REFIT_MIN_FACES
-    from s3o_warp.skeleton_edit import fit_bones_to_parts
+    from s3o_warp.skeleton.edit import fit_bones_to_parts
 
     cfg = _cfg(**{"coarse.steps": 4, "motion.warmup_steps": 4, "motion.steps": 4, "skeleton.method": method,
                   "skeleton.virtual_bones": 6})
@@ -126,7 +126,7 @@ def _check_skeleton_shape(run, sequence, metrics):
     clip 3's front-left leg misses by 0.2 points. At ``tiny_sequence``'s size (64 px crops, 300 coarse
     vertices) the coarse mesh has no tail at all: it is 1-2 px thick there.
     """
-    from s3o_warp import metrics as M
+    from s3o_warp.evaluation import metrics as M
 
     pred, gt = M.load_predictions(run), M.load_ground_truth(sequence / "ground_truth")
     a = metrics["shape_3d"]["alignment"]
@@ -451,7 +451,7 @@ def test_hypotheses_are_ranked_by_their_flow_term_or_else_the_whole_loss(tiny_se
 
 
 def test_temporal_smoothness_is_the_mean_squared_first_difference():
-    from s3o_warp import losses as L
+    from s3o_warp.motion import losses as L
 
     t = torch.arange(6, dtype=torch.float64)
     line = torch.stack([2 * t, -t], 1)  # constant velocity
@@ -645,13 +645,13 @@ def _assert_no_jump(before, after, loss0, loss1):
 
 @pytest.mark.parametrize("epoch", [0, 2])  # 0: shift + growth, 2 (= e1): upsampling
 def test_m_step_keeps_the_posed_mesh_and_the_loss(tiny_sequence, tmp_path, epoch):
-    from s3o_warp.mstep import m_step
+    from s3o_warp.skeleton.mstep import m_step
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     before, loss0 = _posed_and_loss(f, frames)
     B0 = f.model.num_bones
     if epoch == 0:  # make the growth test fire: pretend every part was half as long at the start
-        from s3o_warp import skeleton as sk
+        from s3o_warp.skeleton import measures as sk
 
         X, W = f.model.verts.detach().double().numpy(), f.model.skinning().detach().double().numpy()
         f.skel.extents = 0.4 * sk.part_extents(X, W)
@@ -672,8 +672,8 @@ def test_m_step_keeps_the_posed_mesh_and_the_loss(tiny_sequence, tmp_path, epoch
 def test_min_section_vertices_stops_the_m_steps_splits(tiny_sequence, tmp_path, monkeypatch):
     """mstep.MIN_SECTION_VERTICES reaches the upsampling and joint creation: when no bone owns enough vertices
     for two sections, neither splits one; at the default both do."""
-    from s3o_warp import mstep
-    from s3o_warp.mstep import m_step
+    from s3o_warp.skeleton import mstep
+    from s3o_warp.skeleton.mstep import m_step
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     sc, B0, default = cfg.skeleton, f.model.num_bones, mstep.MIN_SECTION_VERTICES
@@ -694,9 +694,9 @@ def test_min_section_vertices_stops_the_m_steps_splits(tiny_sequence, tmp_path, 
 def test_joint_samples_reach_the_joints_and_the_m_step(tiny_sequence, tmp_path, monkeypatch):
     """The joints are taken over the surface samples (each face's 4 x 4 grid, mstep.JOINT_SAMPLES), not over the
     vertices (1, the paper), and the M-step's lengths and joint creation run on them."""
-    from s3o_warp import mstep
-    from s3o_warp import skeleton as sk
-    from s3o_warp.mstep import bone_length_variation, m_step, refresh_joints
+    from s3o_warp.skeleton import mstep
+    from s3o_warp.skeleton import measures as sk
+    from s3o_warp.skeleton.mstep import bone_length_variation, m_step, refresh_joints
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     sc = cfg.skeleton
@@ -725,8 +725,8 @@ def test_m_step_splits_bones_that_bend_and_keeps_the_loss(tiny_sequence, tmp_pat
     """Bones whose halves' unexplained motion is above t_u get a joint, end bones (one joint) and inner bones (two
     joints or more) alike (here t_u < 0: every bone seen in enough frames); above every bone's, nothing splits.
     The loss does not jump."""
-    from s3o_warp import mstep
-    from s3o_warp.mstep import bone_length_variation, end_bone_bending, m_step
+    from s3o_warp.skeleton import mstep
+    from s3o_warp.skeleton.mstep import bone_length_variation, end_bone_bending, m_step
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     sc = cfg.skeleton
@@ -753,9 +753,9 @@ def test_m_step_splits_bones_that_bend_and_keeps_the_loss(tiny_sequence, tmp_pat
 def test_m_step_prunes_short_bones_and_keeps_the_loss(tiny_sequence, tmp_path, monkeypatch):
     """After e1 the M-step merges bones shorter than mstep.MIN_BONE_LENGTH into their parents; the
     posed mesh and the loss barely move (the short bone's few vertices follow its parent)."""
-    from s3o_warp import mstep
-    from s3o_warp import skeleton as sk
-    from s3o_warp.mstep import joint_samples, m_step
+    from s3o_warp.skeleton import mstep
+    from s3o_warp.skeleton import measures as sk
+    from s3o_warp.skeleton.mstep import joint_samples, m_step
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     cfg.skeleton.t_o, cfg.skeleton.t_d, cfg.skeleton.t_u = 2.0, 1e9, float("inf")  # no merge, no joint: pruning only
@@ -783,7 +783,7 @@ def test_m_step_prunes_short_bones_and_keeps_the_loss(tiny_sequence, tmp_path, m
 def test_the_fits_end_merges_bones_that_own_no_vertex(tiny_sequence, tmp_path):
     """An inner bone that owns no vertex when the fit ends is merged into its parent
     (its child re-hangs there, a joint between them replaces its two), and the posed mesh and the loss stay."""
-    from s3o_warp.mstep import m_step
+    from s3o_warp.skeleton.mstep import m_step
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     assert m_step(f.model, f.opt, data, cfg, f.skel, cfg.skeleton.e1)  # upsampling: chains with inner bones
@@ -809,8 +809,8 @@ def test_the_fits_end_merges_bones_that_own_no_vertex(tiny_sequence, tmp_path):
 def test_m_step_does_not_merge_on_a_few_frames(tiny_sequence, tmp_path, caplog, monkeypatch):
     """A pair that agrees (> t_o) merges when compared on enough frame pairs, and is kept apart, with one log
     line, when mstep.MIN_FRAMES_FRACTION asks for more frame pairs than it was compared on."""
-    from s3o_warp import mstep
-    from s3o_warp.mstep import bone_motion_similarity, merge_min_frames, m_step
+    from s3o_warp.skeleton import mstep
+    from s3o_warp.skeleton.mstep import bone_motion_similarity, merge_min_frames, m_step
 
     cfg, data, f, frames = _joint_fitter(tiny_sequence, tmp_path)
     sc = cfg.skeleton
@@ -832,7 +832,7 @@ def test_m_step_does_not_merge_on_a_few_frames(tiny_sequence, tmp_path, caplog, 
     gc.t_o, gc.t_d, gc.t_u = sc.t_o, 1e9, float("inf")
     monkeypatch.setattr(mstep, "MIN_FRAMES_FRACTION", min(1.0, (int(N[b, P[b]]) + 0.5) / (data.num_frames - 1)))
     assert merge_min_frames(data.num_frames) == int(N[b, P[b]]) + 1  # one frame pair more than b was compared on
-    with caplog.at_level(logging.INFO, logger="s3o_warp.mstep"):
+    with caplog.at_level(logging.INFO, logger="s3o_warp.skeleton.mstep"):
         m_step(g.model, g.opt, data, g.cfg, g.skel, gc.e1 + 1)
     assert g.model.num_bones == B0 - sum(1 for c in kids if S[c, P[c]] > sc.t_o and N[c, P[c]] > N[b, P[b]])
     assert any("not merged" in r.getMessage() and str(b) in r.getMessage() for r in caplog.records)
@@ -951,7 +951,7 @@ def test_cli_fits_a_video_file_with_a_mask_folder(tiny_sequence, tmp_path):
 def test_coverage_term_follows_its_weight_and_pulls_the_bones(tiny_sequence, tmp_path, monkeypatch):
     """motion.w_cover adds the coverage term in both phases (0: none) and its gradient reaches the motion."""
     import s3o_warp.fit as F
-    from s3o_warp import losses as L
+    from s3o_warp.motion import losses as L
     from s3o_warp.geometry import project
     from s3o_warp.kernels.raster import rasterize
 
@@ -984,7 +984,7 @@ def test_coverage_term_follows_its_weight_and_pulls_the_bones(tiny_sequence, tmp
 def test_joint_attachment_loss_against_a_dense_twin():
     """Each joint carried by its two bones: the mean squared gap over the object's size squared; zero when the
     bones move as one rigid piece; float64 gradcheck."""
-    from s3o_warp import losses as L
+    from s3o_warp.motion import losses as L
     from s3o_warp.geometry import axis_angle_to_matrix
 
     g = torch.Generator().manual_seed(0)
@@ -1022,7 +1022,7 @@ def test_joint_attachment_loss_against_a_dense_twin():
 def test_joint_term_follows_its_weight_and_uses_the_skeletons_joints(tiny_sequence, tmp_path):
     """motion.w_joint adds the joint term in both phases (0 = off), on the kinematic tree's joints and the
     object's size, and its gradient reaches the bones' motion."""
-    from s3o_warp import losses as L
+    from s3o_warp.motion import losses as L
 
     cfg = _cfg(**{"coarse.steps": 2, "motion.w_joint": 0.0})
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))

@@ -20,10 +20,10 @@ import numpy as np
 import pytest
 import torch
 
-from s3o_warp import metrics as M
-from s3o_warp.badja import BADJA_ANNOTATED, BADJA_JOINT_NAMES, badja_to_keypoints, write_keypoints
+from s3o_warp.evaluation import metrics as M
+from s3o_warp.data.keypoints import BADJA_ANNOTATED, BADJA_JOINT_NAMES, badja_to_keypoints, write_keypoints
 from s3o_warp.errors import InputError
-from s3o_warp.video import read_mask
+from s3o_warp.data.sequence import read_mask
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -548,7 +548,7 @@ def test_ground_truth_reads_end_joints_tips(tmp_path):
 
 
 def test_limb_coverage_goes_on_to_the_end_joints_tip():
-    from s3o_warp.metrics import limb_coverage
+    from s3o_warp.evaluation.metrics import limb_coverage
 
     # a body 0 -> 1 and a leg 1 -> 2 whose last bone ends 2 below j2 (a hoof below the knee)
     parents = np.array([-1, 0, 1])
@@ -616,7 +616,7 @@ def test_badja_keypoints_fall_inside_davis_masks(shared_data, animal, tmp_path):
     if not src.exists() or not masks.is_dir():
         pytest.skip(f"{src} or {masks} not in the shared data")
     out = tmp_path / "keypoints.json"
-    from s3o_warp.badja import main
+    from s3o_warp.data.keypoints import main
 
     assert main([str(src), str(out), "--frames", str(shared_data / "davis" / "JPEGImages" / "480p" / animal)]) == 0
     kp = M.load_keypoints(out)
@@ -661,7 +661,7 @@ def test_joints_inside_a_moving_box():
 
 
 def test_limb_coverage_on_a_hand_made_tree():
-    from s3o_warp.metrics import gt_limbs, limb_coverage
+    from s3o_warp.evaluation.metrics import gt_limbs, limb_coverage
 
     # body 0 -> 1; two legs from 1: 1 -> 2 -> 3 and 1 -> 4 -> 5; a tail 0 -> 6
     parents = np.array([-1, 0, 1, 2, 1, 4, 0])
@@ -721,7 +721,7 @@ def test_limb_coverage_on_a_hand_made_tree():
 
 
 def test_limb_identity_counts_the_frames_where_two_legs_swap():
-    from s3o_warp.metrics import Similarity, limb_identity
+    from s3o_warp.evaluation.metrics import Similarity, limb_identity
 
     # the tree of the test above: legs end at joints 3 and 5, the tail at joint 6
     parents = np.array([-1, 0, 1, 2, 1, 4, 0])

@@ -11,7 +11,7 @@ import pytest
 
 from s3o_warp.cli import main as cli_main
 from s3o_warp.config import DataConfig
-from s3o_warp.video import open_sequence
+from s3o_warp.data.sequence import open_sequence
 
 
 def _write_seq(root, masks, size=(48, 64)):
@@ -60,7 +60,7 @@ def test_object_leaving_the_frame_is_down_weighted_with_a_warning(tmp_path, capl
 
     import torch
 
-    from s3o_warp.losses import silhouette_loss
+    from s3o_warp.motion.losses import silhouette_loss
 
     sil = torch.zeros(3, 4, 4)
     mask = torch.zeros(3, 4, 4)

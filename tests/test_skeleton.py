@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from s3o_warp import skeleton as sk
+from s3o_warp.skeleton import measures as sk
 from s3o_warp.geometry import axis_angle_to_matrix, matrix_to_quat, project
 from s3o_warp.model import ModelInit, S3OModel
 

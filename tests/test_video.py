@@ -1,4 +1,4 @@
-"""s3o_warp.video / video_flow: layouts, crop transforms, flow + confidence, cache, every bad input."""
+"""s3o_warp.data.sequence / video_flow: layouts, crop transforms, flow + confidence, cache, every bad input."""
 
 from __future__ import annotations
 
@@ -11,10 +11,12 @@ import pytest
 import torch
 from PIL import Image
 
-from s3o_warp import video, video_flow
+from s3o_warp.data import sequence as video
+
+from s3o_warp.data import flow as video_flow
 from s3o_warp.config import DataConfig
 from s3o_warp.errors import ConfigError, InputError
-from s3o_warp.video import (
+from s3o_warp.data.sequence import (
     crop_frame,
     crop_transform,
     intrinsics_crop_to_frame,
@@ -24,7 +26,7 @@ from s3o_warp.video import (
     mask_bbox,
     open_sequence,
 )
-from s3o_warp.video_flow import compute_flow, make_dis, pair_flow
+from s3o_warp.data.flow import compute_flow, make_dis, pair_flow
 
 H, W = 60, 80
 

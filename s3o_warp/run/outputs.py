@@ -49,8 +49,8 @@ def rig_from_model(fitter):
         joints = np.asarray(sk.joint_positions, dtype=np.float64)
     lengths = None
     if pairs is not None:
-        from s3o_warp import skeleton as skl
-        from s3o_warp.mstep import joint_samples
+        from s3o_warp.skeleton import measures as skl
+        from s3o_warp.skeleton.mstep import joint_samples
 
         X, Wn = _np(m.verts), _np(W)
         lengths = skl.bone_lengths(skl.bone_endpoints(X, Wn, pairs, t_r=fitter.cfg.skeleton.t_r,
@@ -93,7 +93,7 @@ def write_run(fitter) -> dict:
         export_gltf(rig, run / f"{name}.glb")
     except ImportError as e:  # pragma: no cover - the exporter is part of the package
         log.warning("export skipped: %s", e)
-    from s3o_warp.metrics import evaluate_run
+    from s3o_warp.evaluation.metrics import evaluate_run
 
     d = fitter.data
     metrics = evaluate_run(run, None, masks=d.mask_dir, keypoints=d.keypoints_file, ground_truth=d.ground_truth_dir,
@@ -104,7 +104,7 @@ def write_run(fitter) -> dict:
     tmp.write_text(json.dumps(metrics, indent=2, default=float))
     os.replace(tmp, run / "metrics.json")
     if fitter.cfg.output.render_video:
-        from s3o_warp import pictures
+        from s3o_warp.run import pictures
 
         pictures.write_renders(run, rig, fitter.data, fitter.history, fitter.cfg.data)
     return metrics

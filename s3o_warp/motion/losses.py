@@ -79,7 +79,7 @@ def soft_iou(sil: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 def vertex_flow_crop(verts_cam: torch.Tensor, K_crop: torch.Tensor) -> torch.Tensor:
     """Projected displacement of each vertex from frame t to t+1 in crop pixels ``(t-1, N, 2)``.
 
-    Matches the observed flow's meaning (``s3o_warp.video_flow``): crop-t pixel x is seen at crop-(t+1)
+    Matches the observed flow's meaning (``s3o_warp.data.flow``): crop-t pixel x is seen at crop-(t+1)
     pixel x + flow, so the displacement is ``proj_{t+1}(X^{t+1}) - proj_t(X^t)``, each frame with its own
     crop intrinsics.
     """

@@ -15,7 +15,7 @@ we actually fit, in OpenCV's centre convention (pixel (c, r) has its centre at (
 
     {"names": [...], "frames": {"00000": [[x, y, visible], ...], ...}}
 
-Command line: ``python -m s3o_warp.badja BADJA.json OUT.json --frames DIR`` (size read from the first
+Command line: ``python -m s3o_warp.data.keypoints BADJA.json OUT.json --frames DIR`` (size read from the first
 image in DIR) or ``--frame-size H W``.
 """
 
@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from s3o_warp.errors import InputError
-from s3o_warp.metrics import read_json, write_json
+from s3o_warp.evaluation.metrics import read_json, write_json
 
 log = logging.getLogger(__name__)
 
@@ -148,8 +148,8 @@ def frame_size_of(frames_dir) -> tuple[int, int]:
 
 
 def main(argv=None) -> int:
-    """``python -m s3o_warp.badja IN.json OUT.json (--frames DIR | --frame-size H W)``."""
-    ap = argparse.ArgumentParser(prog="python -m s3o_warp.badja",
+    """``python -m s3o_warp.data.keypoints IN.json OUT.json (--frames DIR | --frame-size H W)``."""
+    ap = argparse.ArgumentParser(prog="python -m s3o_warp.data.keypoints",
                                  description="Convert BADJA joint annotations to keypoints.json.")
     ap.add_argument("badja_json", help="BADJA joint_annotations/<animal>.json")
     ap.add_argument("out", help="keypoints.json to write")

@@ -40,7 +40,7 @@ from tqdm.auto import tqdm
 
 from s3o_warp.config import DataConfig
 from s3o_warp.errors import ConfigError, InputError
-from s3o_warp.video import FLOW_PRESETS, Sequence, check_data_config, crop_transform, warp_similarity
+from s3o_warp.data.sequence import FLOW_PRESETS, Sequence, check_data_config, crop_transform, warp_similarity
 
 log = logging.getLogger(__name__)
 
@@ -275,7 +275,7 @@ def compute_flow(seq: Sequence, cache_dir: str | Path, cfg: DataConfig | None = 
     created when a pair has to be written.
 
     Args:
-        seq: from :func:`s3o_warp.video.open_sequence`; its crops define the crop coordinates.
+        seq: from :func:`s3o_warp.data.sequence.open_sequence`; its crops define the crop coordinates.
         cache_dir: e.g. ``<run>/cache``.
         cfg: flow settings (``flow_preset``); defaults
             to ``seq.cfg``. Its crop settings must equal the sequence's.

@@ -3,7 +3,7 @@
 Measurements (this module): per-bone motion from optical flow (eq. 4), motion similarity (eq. 8),
 joint positions from skinning weights, bone endpoints and per-frame bone lengths (eq. 6, corrected),
 the kinematic tree over the joint graph, the LASR-like virtual-bone baseline, and ``skeleton.json``.
-Edits (:mod:`s3o_warp.skeleton_edit`, re-exported here): bone shifting (eq. 5), growth, upsampling,
+Edits (:mod:`s3o_warp.skeleton.edit`, re-exported here): bone shifting (eq. 5), growth, upsampling,
 joint creation (eq. 7), merging (eq. 9) and :func:`remap_bones`, the model surgery that applies an edit
 to an ``S3OModel`` and its Adam optimiser without a jump in the posed mesh.
 
@@ -41,7 +41,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from s3o_warp.skeleton_edit import (
+from s3o_warp.skeleton.edit import (
     DEFAULT_SHARPNESS,
     SkeletonEdit,
     _bones_in,
@@ -105,7 +105,7 @@ def bone_flow(
             its total mass ``sum_n W[n, b]``...
         min_mass: ...and at least this many vertices' worth of weight.
         predicted: optional ``(T-1, N, 2)`` per-vertex motion of the fitted model in the same pixels as the
-            returned flow (``s3o_warp.losses.vertex_flow_crop`` for the crop flow), blended with the same
+            returned flow (``s3o_warp.motion.losses.vertex_flow_crop`` for the crop flow), blended with the same
             visibility and weights as the observed flow.
 
     Returns:
@@ -211,7 +211,7 @@ def unexplained_motion(F_B: torch.Tensor, G_B: torch.Tensor, valid: torch.Tensor
                        min_frames: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """How much of the relative image motion of two parts the fitted motion leaves unexplained (not in the paper).
 
-    For each pair ``(p, d)`` of columns (the two halves of one bone's part, :func:`s3o_warp.skeleton.bone_halves`)
+    For each pair ``(p, d)`` of columns (the two halves of one bone's part, :func:`s3o_warp.skeleton.measures.bone_halves`)
     and each frame pair both are seen in: the observed relative motion ``o = F_d - F_p`` and the fitted one
     ``g = G_d - G_p``, and ``r = |o - g| / max(|o|, |g|)`` (0 where both are under ``min_flow``). The result is the median of r over those
     frames: about 0 when the fit moves the halves as the video does (a rigid part fitted well: its far half
@@ -370,7 +370,7 @@ def joint_positions(verts, weights, pairs, t_r: float = 0.4, fallback_count: int
 
 def size_of(verts) -> float:
     """The bbox diagonal of ``(N, 3)`` canonical vertices: the unit of the M-step's relative lengths
-    (``s3o_warp.mstep.JOINT_DEPTH``, ``MIN_BONE_LENGTH``)."""
+    (``s3o_warp.skeleton.mstep.JOINT_DEPTH``, ``MIN_BONE_LENGTH``)."""
     X = _np(verts)
     return float(np.linalg.norm(X.max(0) - X.min(0)))
 

@@ -148,7 +148,7 @@ def loss_plot(run: Path, history: list[dict]) -> Path | None:
 
 def write_renders(run: Path, rig, data, history, data_cfg=None) -> list[Path]:
     """All pictures of a run; returns their paths."""
-    from s3o_warp import video
+    from s3o_warp.data import sequence as video
     from s3o_warp.config import DataConfig
 
     (Path(run) / "renders").mkdir(parents=True, exist_ok=True)

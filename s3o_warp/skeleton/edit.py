@@ -559,7 +559,7 @@ def bone_halves(verts, weights, centers, parents, endpoints, bones, min_section_
 
     Returns ``(halves, W2)``: the bones that can be cut ``(K,)`` and ``(N, 2K)`` weights, columns ``2k`` (the
     parent's side) and ``2k + 1`` (beyond) holding bone ``halves[k]``'s weights on its part's vertices of that
-    half, 0 elsewhere (for :func:`s3o_warp.skeleton.bone_flow` and :func:`s3o_warp.skeleton.unexplained_motion`).
+    half, 0 elsewhere (for :func:`s3o_warp.skeleton.measures.bone_flow` and :func:`s3o_warp.skeleton.measures.unexplained_motion`).
     """
     X, W, C, P = _bones_in("bone_halves", verts, weights, centers, parents=parents)
     sel, ends, lab = _cut_inputs("bone_halves", X, W, endpoints, bones)
@@ -595,13 +595,13 @@ def split_at_joints(
     The paper places the new joint ``J~`` at the average of the bone's two joints ``J_j``, ``J_j'`` and
     redirects their connection through it. Here: the part ``I_b`` is cut by the plane through the
     midpoint ``m = (e_0 + e_1)/2`` of the bone's canonical endpoints (``endpoints @ verts``, see
-    :func:`s3o_warp.skeleton.bone_endpoints`) perpendicular to ``e_1 - e_0``; each side becomes a bone
+    :func:`s3o_warp.skeleton.measures.bone_endpoints`) perpendicular to ``e_1 - e_0``; each side becomes a bone
     (centroid, covariance precision), chained on the parent's side first, with a new joint at m.
 
     Args:
         verts, weights, centers, precisions, parents: as in :func:`grow_skeleton`.
         endpoints: ``(B, 2, N)`` row-normalised endpoint selection matrix.
-        bones: ``(B,)`` bool, which bones get a joint (:func:`s3o_warp.skeleton.create_joints`).
+        bones: ``(B,)`` bool, which bones get a joint (:func:`s3o_warp.skeleton.measures.create_joints`).
         sharpness, min_section_vertices, extents: as in :func:`upsample_skeleton`.
 
     Returns:
@@ -649,10 +649,10 @@ def merge_bones(
     softmax in log space is the same number without overflow. ``temperature = 1``
     is the paper's formula (then the larger part nearly always wins outright); larger values blend.
     The merged bone's motion is the same blend of its members' motions; its length comes from its
-    joints afterwards (:func:`s3o_warp.skeleton.bone_lengths`).
+    joints afterwards (:func:`s3o_warp.skeleton.measures.bone_lengths`).
 
     Args:
-        similarity: ``(B, B)`` motion similarity (:func:`s3o_warp.skeleton.motion_similarity`).
+        similarity: ``(B, B)`` motion similarity (:func:`s3o_warp.skeleton.measures.motion_similarity`).
         weights: ``(N, B)`` W. centers: ``(B, 3)``. precisions: ``(B, 3, 3)``. parents: ``(B,)``.
         t_o: merge threshold (paper: 0.95; 0.99 finer, 0.90 coarser skeletons).
         temperature: softmax temperature of the merge weights (1 = paper).
@@ -750,7 +750,7 @@ def prune_short_bones(lengths, min_length: float, weights, centers, precisions, 
     weight mass.
 
     Args:
-        lengths: ``(B,)`` canonical bone lengths (:func:`s3o_warp.skeleton.bone_lengths`).
+        lengths: ``(B,)`` canonical bone lengths (:func:`s3o_warp.skeleton.measures.bone_lengths`).
         min_length: bones with ``lengths < min_length`` are merged (same units as ``lengths``); 0 = only the
             empty ones.
         weights, centers, precisions, parents, extents: as in :func:`merge_bones`.

@@ -19,7 +19,7 @@ the vertices both bones weigh >= t_r. Per-frame motion and optimiser state are c
 
 The thresholds a user sets are in ``SkeletonConfig`` (t_o, t_d, t_r, t_u, e1, max_bones); the tuning
 constants below are the M-step's own. Lengths and depths are fractions of the canonical mesh's bbox diagonal
-(:func:`s3o_warp.skeleton.size_of`), flows crop pixels.
+(:func:`s3o_warp.skeleton.measures.size_of`), flows crop pixels.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from s3o_warp import skeleton as sk
+from s3o_warp.skeleton import measures as sk
 
 log = logging.getLogger(__name__)
 
@@ -123,7 +123,7 @@ def joint_samples(model) -> sk.SurfaceSamples | None:
 
 def refresh_joints(model, state: SkeletonState, sc) -> None:
     """Joints = the kinematic tree's (parent, child) pairs, placed at the mean of the shared vertices
-    (``sc.t_r``), then moved into the body (:func:`s3o_warp.skeleton.centre_in_body`; not in the paper): to the
+    (``sc.t_r``), then moved into the body (:func:`s3o_warp.skeleton.measures.centre_in_body`; not in the paper): to the
     middle of a thin limb's cross-section, at most :data:`JOINT_DEPTH` below the surface of a thick part (the mean
     sits on the surface when the shared vertices are on one side of a limb). ``sc`` is the run's
     ``SkeletonConfig``."""
@@ -137,7 +137,7 @@ def refresh_joints(model, state: SkeletonState, sc) -> None:
 
 
 def prune_empty_bones(model, opt, state: SkeletonState, sc, epoch: int = -1) -> bool:
-    """Merge the bones that own no vertex into their parents (:func:`s3o_warp.skeleton.prune_short_bones` with
+    """Merge the bones that own no vertex into their parents (:func:`s3o_warp.skeleton.measures.prune_short_bones` with
     no length limit), carrying motion and optimiser state over; the fit's last step, not in the paper: such a bone
     moves nothing, and its joints fall back to far-apart borders (a leg's top joint at the tail's base).
     ``epoch`` only labels the history entry and the log line (-1: after the last epoch). Returns whether the
@@ -148,7 +148,7 @@ def prune_empty_bones(model, opt, state: SkeletonState, sc, epoch: int = -1) -> 
 
 
 def _prune_edit(model, state: SkeletonState, sc, min_length: float):
-    """:func:`s3o_warp.skeleton.prune_short_bones` on the model's canonical bone lengths; ``min_length`` a fraction
+    """:func:`s3o_warp.skeleton.measures.prune_short_bones` on the model's canonical bone lengths; ``min_length`` a fraction
     of the mesh's size."""
     X, W = _xw(model)
     C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
@@ -191,7 +191,7 @@ def _pair_windows(model, T: int, batch_frames: int):
 @torch.no_grad()
 def bone_motion_similarity(model, data, cfg) -> tuple[np.ndarray, np.ndarray]:
     """Eq. 4 + 8: per-bone flow over all frames (visible vertices only), min-over-frames cosine ``(B, B)``,
-    and the ``(B, B)`` counts of frames each pair was compared on (:func:`s3o_warp.skeleton.motion_similarity`)."""
+    and the ``(B, B)`` counts of frames each pair was compared on (:func:`s3o_warp.skeleton.measures.motion_similarity`)."""
     from s3o_warp.kernels.visibility import vertex_visibility
 
     sc = cfg.skeleton
@@ -229,7 +229,7 @@ def bone_length_variation(model, data, state: SkeletonState, cfg) -> tuple[np.nd
 @torch.no_grad()
 def end_bone_bending(model, data, state: SkeletonState, E: np.ndarray, cfg) -> np.ndarray:
     """Per bone, how much of the relative motion of its part's two halves the fit leaves unexplained
-    (:func:`s3o_warp.skeleton.unexplained_motion`), ``(B,)``; NaN for bones that have no joint, are shorter than
+    (:func:`s3o_warp.skeleton.measures.unexplained_motion`), ``(B,)``; NaN for bones that have no joint, are shorter than
     twice :data:`MIN_BONE_LENGTH`, cannot be cut or are seen in too few frames.
 
     Not in the paper: an end bone's length runs from its joint to its far end, which both move with the bone,
@@ -238,7 +238,7 @@ def end_bone_bending(model, data, state: SkeletonState, E: np.ndarray, cfg) -> n
     joints (eq. 6's ends).
     """
     from s3o_warp.kernels.visibility import vertex_visibility
-    from s3o_warp.losses import vertex_flow_crop
+    from s3o_warp.motion.losses import vertex_flow_crop
 
     sc = cfg.skeleton
     X, W = _xw(model)
@@ -353,7 +353,7 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int) -> bool:
 
 def virtual_bones_init(model, cfg) -> np.ndarray:
     """The LASR-like baseline: k-means bones over the canonical surface, a flat tree (all children of bone 0)."""
-    from s3o_warp.skeleton import precision_to_quat_scales
+    from s3o_warp.skeleton.measures import precision_to_quat_scales
 
     X = model.verts.detach().cpu().double().numpy()
     C, Q = sk.virtual_bones(X, cfg.skeleton.virtual_bones, seed=cfg.seed)

@@ -15,7 +15,7 @@ Typical use::
     bones = init_bones(coarse)                      # Gaussian bones, kinematic tree, joints
 """
 
-from s3o_warp.coarse_lift import (
+from s3o_warp.coarse.lift import (
     Bones,
     Coarse3D,
     ellipsoid_field,
@@ -23,7 +23,7 @@ from s3o_warp.coarse_lift import (
     init_bones,
     lift_to_3d,
 )
-from s3o_warp.coarse_skeleton import (
+from s3o_warp.coarse.skeleton2d import (
     ENDPOINT,
     ISOLATED,
     JUNCTION,

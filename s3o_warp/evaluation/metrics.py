@@ -46,7 +46,7 @@ from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
 from s3o_warp.errors import InputError
-from s3o_warp.video import read_mask
+from s3o_warp.data.sequence import read_mask
 
 log = logging.getLogger(__name__)
 
@@ -377,10 +377,10 @@ def write_json(obj, path) -> Path:
 def load_keypoints(path) -> Keypoints:
     """Read ``keypoints.json``: ``{"names": [P], "frames": {stem: [[x, y, visible], ...] (P rows)}}``."""
     path = Path(path)
-    data = read_json(path, "keypoints file", "pass a keypoints.json (python -m s3o_warp.badja converts BADJA files)")
+    data = read_json(path, "keypoints file", "pass a keypoints.json (python -m s3o_warp.data.keypoints converts BADJA files)")
     if not isinstance(data, dict) or not isinstance(data.get("frames"), dict):
         raise InputError(f"{path}: expected {{\"names\": [...], \"frames\": {{stem: [[x, y, visible], ...]}}}}; "
-                         "convert BADJA files with python -m s3o_warp.badja")
+                         "convert BADJA files with python -m s3o_warp.data.keypoints")
     names = [str(n) for n in data.get("names", [])]
     frames = {}
     for stem, rows in data["frames"].items():
@@ -1025,7 +1025,7 @@ def empty_bones(weights: np.ndarray) -> dict:
     W = np.asarray(weights)
     if W.ndim != 2 or W.shape[1] == 0:
         raise ValueError(f"empty_bones(): weights must have shape (N, B) with B >= 1, got {W.shape}")
-    from s3o_warp.skeleton_edit import assign_parts
+    from s3o_warp.skeleton.edit import assign_parts
 
     owned = np.bincount(assign_parts(W), minlength=W.shape[1])
     return {"count": int(W.shape[1]), "empty": np.flatnonzero(owned == 0).tolist()}

@@ -18,8 +18,8 @@ image of width W spans [-0.5, W - 0.5]. A :class:`Crop` keeps the exact 3x3 simi
 ``crop_to_frame`` mapping homogeneous crop pixel coordinates to full-frame pixel coordinates, so
 ``K_frame = crop_to_frame @ K_crop`` (:func:`intrinsics_crop_to_frame`).
 
-Optical flow on the crops lives in :mod:`s3o_warp.video_flow` (``compute_flow``, ``FlowCache``), also
-reachable as ``s3o_warp.video.compute_flow``.
+Optical flow on the crops lives in :mod:`s3o_warp.data.flow` (``compute_flow``, ``FlowCache``), also
+reachable as ``s3o_warp.data.sequence.compute_flow``.
 
 Every bad input raises :class:`s3o_warp.errors.InputError` (bad settings:
 :class:`s3o_warp.errors.ConfigError`) with one line naming the file or setting and the fix. This
@@ -92,9 +92,9 @@ __all__ = [
 
 
 def __getattr__(name: str) -> Any:
-    """Lazy re-export of the flow API from :mod:`s3o_warp.video_flow` (avoids a circular import)."""
+    """Lazy re-export of the flow API from :mod:`s3o_warp.data.flow` (avoids a circular import)."""
     if name in ("compute_flow", "FlowCache", "FlowPair"):
-        from s3o_warp import video_flow
+        from s3o_warp.data import flow as video_flow
 
         return getattr(video_flow, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

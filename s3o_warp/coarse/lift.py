@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from s3o_warp.coarse_skeleton import ENDPOINT, CoarseSettings, Skeleton2D, symmetric_pairs
+from s3o_warp.coarse.skeleton2d import ENDPOINT, CoarseSettings, Skeleton2D, symmetric_pairs
 from s3o_warp.errors import InputError
 
 log = logging.getLogger(__name__)

@@ -1,0 +1,1 @@
+"""Evaluation: mask IoU, PCK-T, 3D shape and skeleton metrics."""

@@ -1,0 +1,1 @@
+"""A run directory: checkpoints, branches, outputs and pictures."""
