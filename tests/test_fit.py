@@ -472,7 +472,7 @@ def test_a_constant_extra_turn_of_the_root_costs_its_rate_squared(tiny_sequence,
             p.zero_()
         m.root_aa[:, 1] = 0.01 * torch.arange(T, dtype=torch.float32)  # 0.57 degrees per frame more turn
     terms, _, _ = f.motion_losses(torch.arange(0, 3))
-    assert float(terms["smooth"][1]) == pytest.approx(0.01**2 / 3, rel=1e-4)
+    assert float(terms["smooth"][1].detach()) == pytest.approx(0.01**2 / 3, rel=1e-4)
 
 
 def test_sweep_seeds_new_frames_from_the_nearest_visited_one(tiny_sequence, tmp_path):
