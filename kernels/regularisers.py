@@ -385,7 +385,7 @@ def _edge_weighted_stretch(name: str, verts: torch.Tensor, edges: torch.Tensor) 
 def dynamic_rigidity_loss(
     verts: torch.Tensor, edges: torch.Tensor, weights: torch.Tensor, lam: float = 0.1
 ) -> torch.Tensor:
-    """Dynamic rigidity (DR), paper eq. 1-2 with the DESIGN.md correction to eq. 1.
+    """Dynamic rigidity (DR), paper eq. 1-2 with the correction to eq. 1 that docs/method.md gives.
 
     ``H_i = -sum_b W[i, b] log2 W[i, b]`` is vertex i's skinning entropy (W clamped to
     ``ENTROPY_EPS`` inside the log); ``R_ij = 1 / ((H_i + lam) (H_j + lam))`` is the rigidity of

@@ -14,14 +14,15 @@ import logging
 import sys
 from pathlib import Path
 
+from s3o_warp.config import PRESETS, make_config
 from s3o_warp.errors import InputError
+from s3o_warp.fit import FitInterrupted, fit, resolve_device
+from s3o_warp.synth import make_sequence
 
 log = logging.getLogger("s3o_warp")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from s3o_warp.config import PRESETS
-
     p = argparse.ArgumentParser(prog="s3o-fit", description="Fit shape, skeleton and motion to one video with masks.")
     p.add_argument("sequence", nargs="?", help="sequence folder (images/ + masks/), a DAVIS sequence folder, a DAVIS root "
                    "with --name, or a video file / frame folder with --masks; default: the built-in quadruped")
@@ -51,11 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as e:
         print(f"s3o-fit: error: {e}", file=sys.stderr)
         return 2
-    except Exception as e:
-        from s3o_warp.fit import FitInterrupted
-
-        if not isinstance(e, FitInterrupted):
-            raise
+    except FitInterrupted as e:
         print(f"s3o-fit: {e}; continue with --resume", file=sys.stderr)
         return 130
     except KeyboardInterrupt:
@@ -64,9 +61,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args) -> int:
-    from s3o_warp.config import make_config
-    from s3o_warp.fit import fit, resolve_device
-
     cfg = make_config(args.preset, args.config, args.overrides, args.seed)
     if args.object_id is not None:
         cfg.data.object_id = args.object_id
@@ -76,8 +70,6 @@ def _run(args) -> int:
         out = Path(args.out or "runs/quadruped")
         seq = out / "sequence"
         if not (seq / "images").is_dir():
-            from s3o_warp.synth import make_sequence
-
             log.info("no sequence given: rendering the built-in procedural quadruped into %s", seq)
             make_sequence(seq, seed=cfg.seed)
     else:

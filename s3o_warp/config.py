@@ -165,7 +165,7 @@ class MotionConfig:
     in the image and that keeps their velocities, ``s3o_warp.motion.crossings``); on the synthetic walks it lifts PCK-T
     by 6-8 points (README, Benchmarks)."""
     w_rigid: Annotated[float, NONNEG] = 1.0
-    """Weight of the dynamic rigidity loss (eq. 1-2, corrected as in DESIGN.md)."""
+    """Weight of the dynamic rigidity loss (eq. 1-2, with eq. 1 corrected as docs/method.md says)."""
     rigidity: Literal["dynamic", "arap", "none"] = "dynamic"
     """Rigidity regulariser: dynamic (S3O), arap (the ablation) or none."""
     w_lap: Annotated[float, NONNEG] = 1.0

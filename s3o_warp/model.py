@@ -19,6 +19,7 @@ import torch
 from torch import nn
 
 from s3o_warp.geometry import axis_angle_to_matrix, matrix_to_quat, quat_to_matrix
+from s3o_warp.ops import blend_skinning, skinning_weights
 
 
 @dataclass
@@ -122,8 +123,6 @@ class S3OModel(nn.Module):
 
     def skinning(self, detach_verts: bool = True) -> torch.Tensor:
         """Skinning weights W ``(N, B)`` of the canonical vertices (vertices detached, as in LASR)."""
-        from s3o_warp.kernels.skinning import skinning_weights
-
         v = self.verts.detach() if detach_verts else self.verts
         return skinning_weights(v, self.bone_centers, self.precisions())
 
@@ -168,16 +167,12 @@ class S3OModel(nn.Module):
 
     def forward(self, frames: torch.Tensor, weights: torch.Tensor | None = None, verts: torch.Tensor | None = None):
         """Posed camera-space vertices ``(t, N, 3)`` of the given frame indices (eq. 3)."""
-        from s3o_warp.kernels.skinning import blend_skinning
-
         W = self.skinning() if weights is None else weights
         v = self.verts if verts is None else verts
         return blend_skinning(v, W, self.bone_rt(frames), self.root_rt(frames))
 
     def posed_object(self, frames: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
         """Articulated vertices in the object frame (before the root), ``(t, N, 3)``."""
-        from s3o_warp.kernels.skinning import blend_skinning
-
         W = self.skinning() if weights is None else weights
         eye = torch.zeros(len(frames), 3, 4, dtype=self.verts.dtype, device=self.verts.device)
         eye[:, :, :3] = torch.eye(3, device=self.verts.device)

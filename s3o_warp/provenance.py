@@ -7,15 +7,15 @@ import platform
 import subprocess
 from pathlib import Path
 
+import numpy
+import torch
+import warp
+
 REPO = Path(__file__).resolve().parents[1]
 
 
 def versions() -> dict:
     """Python, torch, Warp and numpy versions."""
-    import numpy
-    import torch
-    import warp
-
     return {"python": platform.python_version(), "torch": torch.__version__, "warp": warp.config.version, "numpy": numpy.__version__}
 
 
@@ -58,7 +58,5 @@ def git_commit() -> str | None:
 def device_name(device: str) -> str:
     """The GPU's name for ``cuda[:N]``, else the CPU's (with the core count)."""
     if str(device).startswith("cuda"):
-        import torch
-
         return torch.cuda.get_device_name(device)
     return f"{platform.processor() or platform.machine()} ({os.cpu_count()} cores)"

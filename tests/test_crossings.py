@@ -174,7 +174,9 @@ def test_resolve_crossings_in_the_image_where_depth_hides_the_crossing():
 def test_fit_projects_the_crossing_paths_like_the_model(tiny_sequence, tmp_path, monkeypatch):
     """The fit hands the step a projection equal to the model's full-frame one."""
     import s3o_warp.motion.crossings as X
-    from s3o_warp.fit import Fitter, coarse_model, prepare_data
+    from s3o_warp.coarse.model import coarse_model
+    from s3o_warp.data.store import prepare_data
+    from s3o_warp.fit import Fitter
 
     cfg = _cfg()
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
@@ -203,7 +205,8 @@ _cfg = smoke_config  # tiny_sequence: conftest.py
 
 
 def test_lift_gives_mirrored_limb_pairs(tiny_sequence, tmp_path):
-    from s3o_warp.fit import coarse_model, prepare_data
+    from s3o_warp.coarse.model import coarse_model
+    from s3o_warp.data.store import prepare_data
 
     cfg = _cfg()
     res = coarse_model(prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu")), cfg)
@@ -221,7 +224,9 @@ def test_fit_relabels_after_warmup_and_first_epoch_and_resets_moments(tiny_seque
     import json
 
     import s3o_warp.motion.crossings as X
-    from s3o_warp.fit import Fitter, coarse_model, prepare_data
+    from s3o_warp.coarse.model import coarse_model
+    from s3o_warp.data.store import prepare_data
+    from s3o_warp.fit import Fitter
 
     cfg = _cfg(**{"coarse.steps": 5, "motion.warmup_steps": 5, "motion.steps": 8, "skeleton.epochs": 2,
                   "motion.resolve_crossings": True, "motion.hypotheses": 1})
@@ -246,14 +251,16 @@ def test_fit_relabels_after_warmup_and_first_epoch_and_resets_moments(tiny_seque
 
 def test_moments_of_rewritten_frames_are_reset(tiny_sequence, tmp_path, monkeypatch):
     import s3o_warp.motion.crossings as X
-    from s3o_warp.fit import Fitter, coarse_model, prepare_data
+    from s3o_warp.coarse.model import coarse_model
+    from s3o_warp.data.store import prepare_data
+    from s3o_warp.fit import Fitter
 
     cfg = _cfg(**{"motion.resolve_crossings": True})
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     fitter = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
     m = fitter.model
     fitter.phase = "joint"
-    fitter.opt = fitter._make_optimizer()
+    fitter.opt = fitter.make_optimizer()
     for p in (m.bone_aa, m.bone_t):  # some optimiser state
         p.grad = torch.ones_like(p)
     fitter.opt.step()

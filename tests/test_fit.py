@@ -15,16 +15,11 @@ from conftest import smoke_config
 from s3o_warp.data import flow as video_flow
 from s3o_warp.config import make_config
 from s3o_warp.errors import ConfigError, InputError
-from s3o_warp.fit import (
-    CHECKPOINT_VERSION,
-    FitInterrupted,
-    Fitter,
-    coarse_model,
-    fit,
-    latest_checkpoint,
-    prepare_data,
-    resolve_device,
-)
+from s3o_warp.coarse.model import coarse_model
+from s3o_warp.data.store import prepare_data
+from s3o_warp.fit import FitInterrupted, Fitter, fit, resolve_device
+from s3o_warp.motion.windows import seed_unvisited
+from s3o_warp.run.checkpoint import CHECKPOINT_VERSION, latest_checkpoint
 
 _cfg = smoke_config  # tiny_sequence: conftest.py
 
@@ -83,7 +78,7 @@ def test_fit_of_a_small_clip_learns_the_quadrupeds_skeleton(small_sequence, tmp_
 def test_bones_refit_to_their_coarse_parts_only_for_the_lift(tiny_sequence, tmp_path, method):
     """After the coarse fit the lift's bones move onto their labelled parts; the virtual baseline's k-means
     bones have no parts and stay where k-means put them, and its short fit runs through."""
-    from s3o_warp.fit import REFIT_MIN_FACES
+    from s3o_warp.coarse.model import REFIT_MIN_FACES, refit_bones_to_parts
     from s3o_warp.skeleton.edit import fit_bones_to_parts
 
     cfg = _cfg(**{"coarse.steps": 4, "motion.warmup_steps": 4, "motion.steps": 4, "skeleton.method": method,
@@ -94,7 +89,8 @@ def test_bones_refit_to_their_coarse_parts_only_for_the_lift(tiny_sequence, tmp_
     fitter = Fitter(data, res, cfg, tmp_path / "run", torch.device("cpu"))
     m = fitter.model
     C0, Q0 = m.bone_centers.detach().clone(), m.precisions().detach().clone()
-    fitter.refit_bones_to_parts()
+    if method == "s3o":  # the loop refits only the lift's bones
+        refit_bones_to_parts(m, res)
     if method == "virtual":
         assert C0.shape[0] == 6
         torch.testing.assert_close(m.bone_centers, C0, rtol=0, atol=0)
@@ -283,7 +279,7 @@ def test_a_branch_refuses_other_settings_and_a_run_without_its_checkpoint(tiny_s
         fit(tiny_sequence, tmp_path / "b", _cfg(**over, **{"motion.lr_bones": 0.123}), torch.device("cpu"), branch_from=a)
     assert not (tmp_path / "b").exists()  # refused before any work
     # a setting the parent's run lacks is a difference, not read at today's default
-    from s3o_warp.fit import _branch_checkpoint
+    from s3o_warp.run.branch import branch_checkpoint as _branch_checkpoint
 
     ck = a / "checkpoints" / "branch.pt"
     state = torch.load(ck, map_location="cpu", weights_only=False)
@@ -380,11 +376,11 @@ def test_nan_in_a_loss_is_skipped_rolled_back_and_then_stops_naming_the_term(tin
 
 @pytest.mark.parametrize("refine", [0, 2])
 def test_camera_hypotheses_score_each_rate_and_keep_the_best(tiny_sequence, tmp_path, refine, monkeypatch):
-    import s3o_warp.fit as F
+    import s3o_warp.motion.hypotheses as H
     from s3o_warp.geometry import axis_angle_to_matrix
 
-    monkeypatch.setattr(F, "HYPOTHESIS_REFINE", refine)
-    monkeypatch.setattr(F, "HYPOTHESIS_REFINE_STEPS", 2)
+    monkeypatch.setattr(H, "HYPOTHESIS_REFINE", refine)
+    monkeypatch.setattr(H, "HYPOTHESIS_REFINE_STEPS", 2)
     cfg = _cfg(**{"coarse.steps": 2, "motion.warmup_steps": 2, "motion.steps": 2,
                   "motion.hypotheses": 3, "motion.hypothesis_steps": 2})
     run = tmp_path / "run"
@@ -437,17 +433,17 @@ def test_hypotheses_are_scored_on_every_frame(tiny_sequence, tmp_path, monkeypat
 def test_hypotheses_are_ranked_by_their_flow_term_or_else_the_whole_loss(tiny_sequence, tmp_path, monkeypatch):
     """The optical-flow term over every frame ranks the hypotheses; a sequence without a flow term (faked here)
     ranks them by the sum of its terms."""
-    import s3o_warp.fit as F
+    import s3o_warp.motion.hypotheses as H
 
-    monkeypatch.setattr(F, "HYPOTHESIS_REFINE", 0)
+    monkeypatch.setattr(H, "HYPOTHESIS_REFINE", 0)
     cfg = _cfg(**{"coarse.steps": 2, "motion.hypotheses": 3, "motion.hypothesis_steps": 1})
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
     scored = iter([{"flow": 0.3, "sil": 0.0}, {"flow": 0.1, "sil": 5.0}, {"flow": 0.2, "sil": 0.0},
                    {"sil": 0.3, "smooth": 0.1}, {"sil": 0.1, "smooth": 0.4}, {"sil": 0.2, "smooth": 0.0}])
     monkeypatch.setattr(Fitter, "mean_terms", lambda self: next(scored))
-    assert f.select_hypothesis() == 0.0  # rates -3, 0, 3: the lowest flow term, not the lowest total
-    assert f.select_hypothesis() == 3.0  # no flow term: the lowest total
+    assert H.select_hypothesis(f) == 0.0  # rates -3, 0, 3: the lowest flow term, not the lowest total
+    assert H.select_hypothesis(f) == 3.0  # no flow term: the lowest total
 
 
 def test_temporal_smoothness_is_the_mean_squared_first_difference():
@@ -488,7 +484,7 @@ def test_sweep_seeds_new_frames_from_the_nearest_visited_one(tiny_sequence, tmp_
         for p in params:
             p.data[2] = torch.randn(p.shape[1:], generator=g)
             p.data[3] = torch.randn(p.shape[1:], generator=g)
-    f._seed_unvisited(torch.arange(2, 7))  # 4, 5, 6 are new, 3 their nearest visited frame, 2 inward of it
+    seed_unvisited(m, torch.arange(2, 7), f.coarse.canonical)  # 4, 5, 6 are new, 3 their nearest visited frame
     for p in params:
         assert not torch.equal(p.data[2], p.data[3])
         for fr in (4, 5, 6):
@@ -502,7 +498,7 @@ def test_sweep_moves_outward_by_its_stride(tiny_sequence, tmp_path, stride):
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
     T, n, c = data.num_frames, 4, f.coarse.canonical
-    starts = f.sweep_starts(stride)
+    starts = f.windows.sweep_starts(stride)
     s0 = min(max(c - n // 2, 0), T - n)
     assert starts[0] == s0 and 0 in starts and T - n in starts and len(set(starts)) == len(starts)
     step = stride or n // 2
@@ -620,13 +616,13 @@ def _joint_fitter(tiny_sequence, tmp_path):
         data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
     f.phase = "joint"
-    f.opt = f._make_optimizer()
+    f.opt = f.make_optimizer()
     frames = torch.arange(0, 4)
     for _ in range(3):
         f.opt.zero_grad()
         terms, _, _ = f.motion_losses(frames)
         sum(w * v for w, v in terms.values()).backward()
-        f._step_window(frames)
+        f.step_window(frames)
     return cfg, data, f, frames
 
 
@@ -665,7 +661,7 @@ def test_m_step_keeps_the_posed_mesh_and_the_loss(tiny_sequence, tmp_path, epoch
     f.opt.zero_grad()
     terms, _, _ = f.motion_losses(frames)
     sum(w * v for w, v in terms.values()).backward()
-    f._step_window(frames)
+    f.step_window(frames)
     assert len(f.skel.parents) == f.model.num_bones
 
 
@@ -824,7 +820,7 @@ def test_m_step_does_not_merge_on_a_few_frames(tiny_sequence, tmp_path, caplog, 
     sc.t_o = float(S[b, P[b]]) - 1e-4  # b and its parent (and nothing else, or more alike pairs) agree
     merges = sum(1 for c in kids if S[c, P[c]] > sc.t_o)
     g = copy.deepcopy(f)
-    g.opt = g._make_optimizer()
+    g.opt = g.make_optimizer()
     monkeypatch.setattr(mstep, "MIN_FRAMES_FRACTION", 0.0)
     assert merge_min_frames(data.num_frames) == mstep.MIN_FRAMES
     assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1 + 1) and f.model.num_bones == B0 - merges
@@ -862,14 +858,14 @@ def test_even_resampling_in_the_fit_keeps_the_render_and_the_loss(tiny_sequence,
     assert abs(m.verts.shape[0] - len(f.coarse.init.verts)) <= 0.15 * len(f.coarse.init.verts) or m.verts.shape[0] != n0
     if method == "isotropic":  # no grid: the count lands near the target
         assert abs(m.verts.shape[0] - len(f.coarse.init.verts)) <= 0.15 * len(f.coarse.init.verts)
-    assert f.edges.max() < m.verts.shape[0]
+    assert f.ctx.edges.max() < m.verts.shape[0]
     # the optimiser keeps the motion's Adam state and steps the new vertices
     torch.testing.assert_close(f.opt.state[m.bone_aa]["exp_avg"], bones_state)
     v0 = m.verts.detach().clone()
     f.opt.zero_grad()
     terms, _, _ = f.motion_losses(frames)
     sum(w * v for w, v in terms.values()).backward()
-    f._step_window(frames)
+    f.step_window(frames)
     assert not torch.equal(v0, m.verts.detach())
 
 
@@ -883,7 +879,7 @@ def test_a_refused_resampling_keeps_the_mesh_and_its_optimiser_state(tiny_sequen
     f.opt.zero_grad()
     terms, _, _ = f.motion_losses(frames)
     sum(w * v for w, v in terms.values()).backward()
-    f._step_window(frames)  # the vertices have Adam state now
+    f.step_window(frames)  # the vertices have Adam state now
     seen = []
 
     def refuse(verts, faces, settings=None, attributes=None):
@@ -891,12 +887,12 @@ def test_a_refused_resampling_keeps_the_mesh_and_its_optimiser_state(tiny_sequen
         return verts.detach().clone(), faces.detach().clone(), attributes.detach().clone()
 
     monkeypatch.setattr(rs, "even_resample", refuse)
-    verts, lap_ref, state = m.verts, f.lap_ref, {k: v.clone() for k, v in f.opt.state[m.verts].items()}
+    verts, lap_ref, state = m.verts, f.ctx.lap_ref, {k: v.clone() for k, v in f.opt.state[m.verts].items()}
     f.resample_mesh()
     # the target reaches the resampling; refused by marching, isotropic is tried on the same mesh
     n = len(f.coarse.init.verts)
     assert seen == [("marching", n), ("isotropic", n)]
-    assert m.verts is verts and f.lap_ref is lap_ref
+    assert m.verts is verts and f.ctx.lap_ref is lap_ref
     for k, v in state.items():
         torch.testing.assert_close(f.opt.state[m.verts][k], v)
     assert f.history[-1]["what"] == "resample" and f.history[-1]["kept"] is True and f.history[-1]["method"] is None
@@ -921,7 +917,7 @@ def test_a_resampling_refused_by_marching_is_done_by_the_fallback(tiny_sequence,
     verts = m.verts
     f.resample_mesh()
     assert seen == ["marching", "isotropic"]
-    assert m.verts is not verts and f.edges.max() < m.verts.shape[0]
+    assert m.verts is not verts and f.ctx.edges.max() < m.verts.shape[0]
     assert f.history[-1]["kept"] is False and f.history[-1]["method"] == "isotropic"
 
 
@@ -950,12 +946,12 @@ def test_cli_fits_a_video_file_with_a_mask_folder(tiny_sequence, tmp_path):
 
 def test_coverage_term_follows_its_weight_and_pulls_the_bones(tiny_sequence, tmp_path, monkeypatch):
     """motion.w_cover adds the coverage term in both phases (0: none) and its gradient reaches the motion."""
-    import s3o_warp.fit as F
-    from s3o_warp.motion import losses as L
+    import s3o_warp.motion.objective as O
     from s3o_warp.geometry import project
     from s3o_warp.kernels.raster import rasterize
+    from s3o_warp.motion import losses as L
 
-    monkeypatch.setattr(F, "COVER_PIXELS", 0)  # every uncovered pixel: the term is compared exactly below
+    monkeypatch.setattr(O, "COVER_PIXELS", 0)  # every uncovered pixel: the term is compared exactly below
     cfg = _cfg(**{"coarse.steps": 2, "motion.w_cover": 0.5})
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
@@ -1061,7 +1057,8 @@ def test_joint_term_follows_its_weight_and_uses_the_skeletons_joints(tiny_sequen
 def test_canonical_frame_setting_picks_the_lifted_frame(tiny_sequence, tmp_path):
     """coarse.canonical_frame overrides the automatic choice (the lift and the anchor of the fit follow it);
     a frame outside the sequence is one ConfigError naming the setting."""
-    from s3o_warp.fit import coarse_model, prepare_data
+    from s3o_warp.coarse.model import coarse_model
+    from s3o_warp.data.store import prepare_data
 
     cfg = smoke_config()
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))

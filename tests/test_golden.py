@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 import math
-import platform
 import sys
 from pathlib import Path
 
@@ -33,15 +32,9 @@ def environment() -> dict:
     """What a fit's last bits depend on: the CPU model, torch and Warp."""
     import warp
 
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {"cpu": cpu, "torch": torch.__version__, "warp": warp.__version__}
+    from s3o_warp.provenance import cpu_name
+
+    return {"cpu": cpu_name(), "torch": torch.__version__, "warp": warp.__version__}
 
 
 def tiny_record(sequence: Path, run: Path) -> dict:

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from s3o_warp.geometry import axis_angle_to_matrix, matrix_to_axis_angle
+from s3o_warp.geometry import axis_angle_to_matrix, matrix_to_axis_angle, project
 
 log = logging.getLogger(__name__)
 
@@ -179,3 +179,30 @@ def resolve_crossings(bone_aa: torch.Tensor, bone_t: torch.Tensor, centres: torc
 
 
 __all__ = ["LimbPair", "crossing_labels", "exchange_costs", "exchanged_motion", "resolve_crossings"]
+
+
+def resolve_model_crossings(model, opt: torch.optim.Optimizer, pairs: list[LimbPair], canonical: int) -> list[int]:
+    """:func:`resolve_crossings` on the model's bone motion, the feet compared where the fitted camera shows them
+    (full-frame pixels); Adam's moments of every rewritten frame start afresh (they were the partner's). Returns
+    the number of exchanged frames per pair."""
+    m = model
+    before = (m.bone_aa.detach().clone(), m.bone_t.detach().clone())
+    with torch.no_grad():
+        fr = torch.arange(m.num_frames, device=m.bone_aa.device)
+        Rt = m.root_rt(fr).double().cpu()
+        Kf = m.intrinsics_frame(fr).double().cpu()
+
+    def image(P: np.ndarray) -> np.ndarray:
+        """Object-frame points (T, 3), one per frame -> full-frame pixels (T, 2)."""
+        cam = (Rt[:, :, :3] @ torch.as_tensor(P, dtype=torch.float64)[..., None])[..., 0] + Rt[:, :, 3]
+        return project(cam[:, None], Kf)[:, 0].numpy()
+
+    counts = resolve_crossings(m.bone_aa, m.bone_t, m.bone_centers, pairs, canonical, project=image) if pairs else []
+    for p, old in zip((m.bone_aa, m.bone_t), before):
+        st = opt.state.get(p)
+        changed = (p.detach() != old).any(-1)
+        if st and changed.any():
+            for key in ("exp_avg", "exp_avg_sq"):
+                if key in st:
+                    st[key][changed] = 0
+    return counts

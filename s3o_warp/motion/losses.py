@@ -9,6 +9,7 @@ from __future__ import annotations
 import torch
 
 from s3o_warp.geometry import project
+from s3o_warp.kernels.nearest import nearest_point
 
 
 def silhouette_loss(sil: torch.Tensor, mask: torch.Tensor, frame_weight: torch.Tensor | None = None) -> torch.Tensor:
@@ -34,8 +35,6 @@ def coverage_loss(
     distance. ``max_pixels`` > 0 keeps a random sample of at most that many pixels per frame on average
     (rescaled, so the expected value is unchanged).
     """
-    from s3o_warp.kernels.nearest import nearest_point
-
     t, S = uncovered.shape[0], uncovered.shape[-1]
     idx = uncovered.nonzero()  # (Q, 3): frame, row, column
     total = idx.shape[0]
