@@ -10,9 +10,43 @@ import numpy as np
 import pytest
 import torch
 
-from s3o_warp.skeleton import measures as sk
 from s3o_warp.geometry import axis_angle_to_matrix, matrix_to_quat, project
 from s3o_warp.model import ModelInit, S3OModel
+from s3o_warp.skeleton.edit import (
+    DEFAULT_SHARPNESS,
+    fit_bones_to_parts,
+    grow_skeleton,
+    merge_bones,
+    precision_to_quat_scales,
+    prune_short_bones,
+    shift_bones,
+    upsample_skeleton,
+)
+from s3o_warp.skeleton.joints import (
+    bone_endpoints,
+    bone_halves,
+    gaussian_weights,
+    joint_positions,
+    joint_selection,
+    parent_anchors,
+    split_at_joints,
+    surface_samples,
+)
+from s3o_warp.skeleton.measures import (
+    assign_parts,
+    bone_flow,
+    bone_lengths,
+    bone_lengths_per_frame,
+    create_joints,
+    kinematic_tree,
+    motion_similarity,
+    part_extents,
+    skeleton_json,
+    tree_joints,
+    unexplained_motion,
+)
+from s3o_warp.skeleton.mstep import virtual_bones
+from s3o_warp.skeleton.remap import apply_edit, remap_bones
 
 # -------------------------------------------------------------------------------------------------
 # helpers
@@ -104,7 +138,7 @@ def test_bone_flow_two_translating_parts_one_hidden():
     visible[1, 100:] = False  # bone 1 fully hidden in frame 1
     labels = np.r_[np.zeros(100, int), np.ones(100, int)]
     W = _hard_weights(labels, 2)
-    F, ok = sk.bone_flow(torch.tensor(verts, dtype=torch.float32), torch.tensor(K).float().expand(T, 3, 3),
+    F, ok = bone_flow(torch.tensor(verts, dtype=torch.float32), torch.tensor(K).float().expand(T, 3, 3),
                          torch.tensor(flow), torch.tensor(visible), torch.tensor(W, dtype=torch.float32))
     torch.testing.assert_close(F[0], torch.tensor([[2.0, 1.0], [-3.0, 0.0]]), atol=1e-5, rtol=0)
     torch.testing.assert_close(F[1, 0], torch.tensor([2.0, 1.0]), atol=1e-5, rtol=0)
@@ -128,12 +162,12 @@ def test_bone_flow_blends_the_fitted_motion_like_the_observed():
     W = torch.tensor(_hard_weights(np.r_[np.zeros(100, int), np.ones(100, int)], 2), dtype=torch.float32)
     args = (torch.tensor(verts, dtype=torch.float32), torch.tensor(K).float().expand(T, 3, 3), torch.tensor(flow),
             torch.tensor(visible), W)
-    F, ok, G = sk.bone_flow(*args, predicted=torch.tensor(pred))
-    F0, ok0 = sk.bone_flow(*args)
+    F, ok, G = bone_flow(*args, predicted=torch.tensor(pred))
+    F0, ok0 = bone_flow(*args)
     torch.testing.assert_close(F, F0)
     torch.testing.assert_close(G, torch.tensor([[[5.0, 0.0], [0.0, 5.0]]] * 2), atol=1e-5, rtol=0)
     with pytest.raises(ValueError, match="predicted"):
-        sk.bone_flow(*args, predicted=torch.tensor(pred[:1]))
+        bone_flow(*args, predicted=torch.tensor(pred[:1]))
 
 
 def test_bone_flow_matches_cv2_remap_twin(device):
@@ -147,7 +181,7 @@ def test_bone_flow_matches_cv2_remap_twin(device):
     visible = rng.uniform(size=(T, N)) > 0.3
     W = rng.dirichlet(np.ones(B) * 0.5, N)
     kw = dict(min_visible=0.2, min_mass=3.0)
-    F, ok = sk.bone_flow(*(torch.tensor(a).to(device) for a in (verts.astype(np.float32), np.broadcast_to(
+    F, ok = bone_flow(*(torch.tensor(a).to(device) for a in (verts.astype(np.float32), np.broadcast_to(
         K, (T, 3, 3)).astype(np.float32), flow, visible, W.astype(np.float32))), **kw)
     assert F.device.type == torch.device(device).type
     F, ok = F.cpu(), ok.cpu()
@@ -168,12 +202,12 @@ def test_bone_flow_barely_visible_is_invalid():
     W[:10, 0], W[:10, 1] = 0, 1
     vis = torch.ones(T, N, dtype=torch.bool)
     vis[0, :9] = False  # 1 of bone 1's 10 vertices seen: 10% of its mass but below min_mass=3
-    F, ok = sk.bone_flow(verts, K, flow, vis, W)
+    F, ok = bone_flow(verts, K, flow, vis, W)
     assert ok[0].tolist() == [True, False]
-    F, ok = sk.bone_flow(verts, K, flow, vis, W, min_mass=1.0, min_visible=0.05)
+    F, ok = bone_flow(verts, K, flow, vis, W, min_mass=1.0, min_visible=0.05)
     assert ok[0].tolist() == [True, True]
     with pytest.raises(ValueError, match="flow must have shape"):
-        sk.bone_flow(verts, K, flow[0], vis, W)
+        bone_flow(verts, K, flow[0], vis, W)
 
 
 # -------------------------------------------------------------------------------------------------
@@ -210,7 +244,7 @@ def test_motion_similarity_together_vs_different_and_static_frames():
     F[2, :2] = 0.01  # a static frame for bones 0 and 1: skipped, not a disagreement
     valid = np.ones((T1, 4), bool)
     valid[1:, 3] = False  # bone 3 seen in one frame only
-    Sim = sk.motion_similarity(torch.tensor(F).float(), torch.tensor(valid))
+    Sim = motion_similarity(torch.tensor(F).float(), torch.tensor(valid))
     assert Sim[0, 1] > 0.99 and Sim[1, 0] == Sim[0, 1]
     assert Sim[0, 2] < 0.1
     assert Sim[0, 3] == -np.inf
@@ -218,7 +252,7 @@ def test_motion_similarity_together_vs_different_and_static_frames():
     # a frame where only one of the pair moves drives the similarity towards 0
     F2 = F.copy()
     F2[4, 1] = 0
-    assert sk.motion_similarity(torch.tensor(F2).float(), torch.tensor(valid))[0, 1] < 0.05
+    assert motion_similarity(torch.tensor(F2).float(), torch.tensor(valid))[0, 1] < 0.05
 
 
 def test_motion_similarity_is_the_minimum_over_frames():
@@ -230,7 +264,7 @@ def test_motion_similarity_is_the_minimum_over_frames():
     F[7, 1] = -F[7, 0]  # one frame of flow noise
     valid = np.ones((T1, 3), bool)
     valid[:3, 2] = False
-    Sim = sk.motion_similarity(torch.tensor(F).float(), torch.tensor(valid))
+    Sim = motion_similarity(torch.tensor(F).float(), torch.tensor(valid))
     np.testing.assert_allclose(Sim.numpy(), _similarity_naive(F, valid, 0.5, 2), atol=1e-5)
     assert Sim[0, 1] < -0.9 and Sim[0, 2] < -0.99
 
@@ -238,7 +272,7 @@ def test_motion_similarity_is_the_minimum_over_frames():
 def test_merge_together_merges_and_different_does_not():
     """Chain 0-1-2: 0 and 1 move together, 2 differently -> 0 and 1 merge (eq. 8 with t_o)."""
     X, W = _chain()
-    C = sk.shift_bones(X, W, np.zeros((3, 3)))
+    C = shift_bones(X, W, np.zeros((3, 3)))
     Q = np.stack([np.eye(3) * (b + 1) for b in range(3)])
     parents = np.array([-1, 0, 1])
     rng = np.random.default_rng(4)
@@ -246,25 +280,25 @@ def test_merge_together_merges_and_different_does_not():
     a = np.deg2rad(5)  # bone 1: slower and 5 degrees off -> cosine 0.996 in every frame
     F = np.stack([d, 0.8 * d @ np.array([[np.cos(a), np.sin(a)], [-np.sin(a), np.cos(a)]]),
                   d @ np.array([[0.0, 1], [-1, 0]])], 1)
-    Sim = sk.motion_similarity(torch.tensor(F).float(), torch.ones(6, 3, dtype=torch.bool)).numpy()
+    Sim = motion_similarity(torch.tensor(F).float(), torch.ones(6, 3, dtype=torch.bool)).numpy()
     assert abs(Sim[0, 1] - np.cos(a)) < 1e-5
-    e = sk.merge_bones(Sim, W, C, Q, parents, t_o=0.95)
+    e = merge_bones(Sim, W, C, Q, parents, t_o=0.95)
     assert e.num_bones == 2 and e.changed
     assert e.parents.tolist() == [-1, 0]
     assert [i for i, _ in e.sources[0]] == [0, 1] and e.sources[1] == [(2, 1.0)]
     assert e.kept.tolist() == [False, True]
     # stricter threshold than the pair's similarity: nothing merges
-    assert not sk.merge_bones(Sim, W, C, Q, parents, t_o=0.999).changed
+    assert not merge_bones(Sim, W, C, Q, parents, t_o=0.999).changed
     # merging a middle pair of a chain 0-1-2-3 re-hangs the child: still a tree, order kept
     Sim4 = np.full((4, 4), 0.5)
     Sim4[1, 2] = Sim4[2, 1] = 0.99
     W4 = np.concatenate([W, W[:, :1]], 1) / 2
-    e4 = sk.merge_bones(Sim4, W4, np.zeros((4, 3)), np.stack([np.eye(3)] * 4), np.array([-1, 0, 1, 2]))
+    e4 = merge_bones(Sim4, W4, np.zeros((4, 3)), np.stack([np.eye(3)] * 4), np.array([-1, 0, 1, 2]))
     assert e4.parents.tolist() == [-1, 0, 1] and [[i for i, _ in s] for s in e4.sources] == [[0], [1, 2], [3]]
     # non-neighbours never merge even when they move together: 0 and 2 (both moving like d)
     F3 = np.stack([d, d @ np.array([[0.0, 1], [-1, 0]]), d], 1)
-    Sim3 = sk.motion_similarity(torch.tensor(F3).float(), torch.ones(6, 3, dtype=torch.bool)).numpy()
-    assert not sk.merge_bones(Sim3, W, C, Q, parents).changed
+    Sim3 = motion_similarity(torch.tensor(F3).float(), torch.ones(6, 3, dtype=torch.bool)).numpy()
+    assert not merge_bones(Sim3, W, C, Q, parents).changed
 
 
 def test_merge_is_greedy_and_log_space_weights_do_not_overflow():
@@ -280,8 +314,8 @@ def test_merge_is_greedy_and_log_space_weights_do_not_overflow():
     parents = np.array([-1, 0, 1])
     Sim = np.ones((3, 3))
     with np.errstate(over="raise"):
-        g = sk.merge_bones(Sim, W, C, Q, parents)
-        soft = sk.merge_bones(Sim, W, C, Q, parents, temperature=1000.0)
+        g = merge_bones(Sim, W, C, Q, parents)
+        soft = merge_bones(Sim, W, C, Q, parents, temperature=1000.0)
     assert g.num_bones == 2 and [[i for i, _ in src] for src in g.sources] == [[0, 1], [2]]
     for e in (g, soft):
         assert np.isfinite(e.centers).all() and np.isfinite(e.precisions).all()
@@ -297,7 +331,7 @@ def test_merge_is_greedy_and_log_space_weights_do_not_overflow():
     assert [wi for _, wi in g.sources[0]][0] == 1.0  # temperature 1: the largest part wins outright
     assert 0.1 < [wi for _, wi in soft.sources[0]][1] < 0.9
     with pytest.raises(ValueError, match="temperature"):
-        sk.merge_bones(Sim, W, C, Q, parents, temperature=0.0)
+        merge_bones(Sim, W, C, Q, parents, temperature=0.0)
 
 
 def _short_middle(n_long=100, n_short=5):
@@ -307,7 +341,7 @@ def _short_middle(n_long=100, n_short=5):
                         _segment_cloud([1, 0, 0], [1.05, 0, 0], n_short, 0.05, rng),
                         _segment_cloud([1.05, 0, 0], [2, 0, 0], n_long, 0.05, rng)])
     W = _hard_weights(np.repeat([0, 1, 2], [n_long, n_short, n_long]), 3)
-    C = sk.shift_bones(X, W, np.zeros((3, 3)))
+    C = shift_bones(X, W, np.zeros((3, 3)))
     Q = np.stack([np.eye(3) * (b + 1) for b in range(3)])
     return X, W, C, Q
 
@@ -315,57 +349,57 @@ def _short_middle(n_long=100, n_short=5):
 def test_prune_short_bones_merges_into_the_parent():
     """A short inner bone is merged into its parent (the long one wins: its centre, precision and motion)."""
     X, W, C, Q = _short_middle()
-    E = sk.bone_endpoints(X, W, sk.tree_joints(np.array([-1, 0, 1])))
-    L = sk.bone_lengths(E, X)
+    E = bone_endpoints(X, W, tree_joints(np.array([-1, 0, 1])))
+    L = bone_lengths(E, X)
     assert L[1] < 0.1 < 0.4 < min(L[0], L[2])  # the middle bone is the short one
-    e = sk.prune_short_bones(L, 0.2, W, C, Q, np.array([-1, 0, 1]), extents=np.array([1.0, 0.05, 1.0]))
+    e = prune_short_bones(L, 0.2, W, C, Q, np.array([-1, 0, 1]), extents=np.array([1.0, 0.05, 1.0]))
     assert e.changed and e.num_bones == 2 and e.parents.tolist() == [-1, 0]
     assert [i for i, _ in e.sources[0]] == [0, 1] and e.sources[1] == [(2, 1.0)]
     np.testing.assert_allclose(e.centers[0], C[0], atol=1e-12)  # mass 100 vs 5: bone 0 wins outright
     np.testing.assert_allclose(e.precisions[0], Q[0], atol=1e-12)
     assert e.extents.tolist() == [1.0, 1.0]
     # nothing shorter than the limit: unchanged; a limit of 0 prunes only empty bones
-    assert not sk.prune_short_bones(np.array([1.0, 0.5, 1.0]), 0.2, W, C, Q, np.array([-1, 0, 1])).changed
-    assert not sk.prune_short_bones(np.zeros(3), 0.0, W, C, Q, np.array([-1, 0, 1])).changed  # none empty
+    assert not prune_short_bones(np.array([1.0, 0.5, 1.0]), 0.2, W, C, Q, np.array([-1, 0, 1])).changed
+    assert not prune_short_bones(np.zeros(3), 0.0, W, C, Q, np.array([-1, 0, 1])).changed  # none empty
     # a chain of short bones collapses into the long bone it hangs from; the long child re-hangs on it
     lab4 = W.argmax(1)
     lab4[-50:] = 3  # the far half of bone 2's vertices go to bone 3
     W4 = _hard_weights(lab4, 4)
     C4, Q4 = np.concatenate([C, C[:1]]), np.concatenate([Q, Q[:1]])
-    e4 = sk.prune_short_bones(np.array([1.0, 0.02, 0.01, 1.0]), 0.1, W4, C4, Q4, np.array([-1, 0, 1, 2]))
+    e4 = prune_short_bones(np.array([1.0, 0.02, 0.01, 1.0]), 0.1, W4, C4, Q4, np.array([-1, 0, 1, 2]))
     assert [[i for i, _ in s] for s in e4.sources] == [[0, 1, 2], [3]] and e4.parents.tolist() == [-1, 0]
     # a short root merges with its longest child
-    er = sk.prune_short_bones(np.array([0.01, 0.5, 1.0]), 0.1, W, C, Q, np.array([-1, 0, 0]))
+    er = prune_short_bones(np.array([0.01, 0.5, 1.0]), 0.1, W, C, Q, np.array([-1, 0, 0]))
     assert [[i for i, _ in s] for s in er.sources] == [[0, 2], [1]] and er.parents.tolist() == [-1, 0]
     # a short end bone that owns vertices (a tail tip, a hoof) is kept; one that owns none is merged
-    assert not sk.prune_short_bones(np.array([1.0, 1.0, 0.01]), 0.1, W, C, Q, np.array([-1, 0, 1])).changed
+    assert not prune_short_bones(np.array([1.0, 1.0, 0.01]), 0.1, W, C, Q, np.array([-1, 0, 1])).changed
     W_empty = W.copy()
     W_empty[:, 1] += W_empty[:, 2]
     W_empty[:, 2] = 0.0  # bone 2 owns nothing
-    ee = sk.prune_short_bones(np.array([1.0, 1.0, 0.0]), 0.1, W_empty, C, Q, np.array([-1, 0, 1]))
+    ee = prune_short_bones(np.array([1.0, 1.0, 0.0]), 0.1, W_empty, C, Q, np.array([-1, 0, 1]))
     assert [[i for i, _ in s] for s in ee.sources] == [[0], [1, 2]]
     # an empty inner bone goes whatever its length (its joints fall back to far-apart borders), also at limit 0
     W_mid = W.copy()
     W_mid[:, 0] += W_mid[:, 1]
     W_mid[:, 1] = 0.0  # bone 1 owns nothing
     for limit in (0.1, 0.0):
-        em = sk.prune_short_bones(np.array([1.0, 0.8, 1.0]), limit, W_mid, C, Q, np.array([-1, 0, 1]))
+        em = prune_short_bones(np.array([1.0, 0.8, 1.0]), limit, W_mid, C, Q, np.array([-1, 0, 1]))
         assert [[i for i, _ in s] for s in em.sources] == [[0, 1], [2]] and em.parents.tolist() == [-1, 0]
     # ... and a short bone whose only child owns nothing is an end bone: it stays, the empty child goes
-    ee = sk.prune_short_bones(np.array([1.0, 0.01, 0.0]), 0.1, W_empty, C, Q, np.array([-1, 0, 1]))
+    ee = prune_short_bones(np.array([1.0, 0.01, 0.0]), 0.1, W_empty, C, Q, np.array([-1, 0, 1]))
     assert [[i for i, _ in s] for s in ee.sources] == [[0], [1, 2]]
     # a lone bone has nothing to merge with
-    assert not sk.prune_short_bones(np.array([0.0]), 0.1, W[:, :1] * 0, C[:1], Q[:1], np.array([-1])).changed
+    assert not prune_short_bones(np.array([0.0]), 0.1, W[:, :1] * 0, C[:1], Q[:1], np.array([-1])).changed
     with pytest.raises(ValueError, match="min_length"):
-        sk.prune_short_bones(L, -1.0, W, C, Q, np.array([-1, 0, 1]))
+        prune_short_bones(L, -1.0, W, C, Q, np.array([-1, 0, 1]))
 
 
 def test_create_joints_leaves_no_half_shorter_than_min_length():
     """A bone stretching by 50 % gets a joint unless its halves would be shorter than min_length."""
     L = np.stack([np.array([1.0, 0.1 * (1 + 0.5 * f / 5), 1.0]) for f in range(6)])  # bone 1: median 0.125
-    assert sk.create_joints(L).tolist() == [False, True, False]  # the paper's relative test alone
-    assert sk.create_joints(L, min_length=0.06).tolist() == [False, True, False]  # halves 0.0625 >= 0.06
-    assert not sk.create_joints(L, min_length=0.07).any()  # halves would be 0.0625 < 0.07
+    assert create_joints(L).tolist() == [False, True, False]  # the paper's relative test alone
+    assert create_joints(L, min_length=0.06).tolist() == [False, True, False]  # halves 0.0625 >= 0.06
+    assert not create_joints(L, min_length=0.07).any()  # halves would be 0.0625 < 0.07
 
 
 # -------------------------------------------------------------------------------------------------
@@ -379,7 +413,7 @@ def test_shift_moves_centre_to_part_centroid():
     labels = np.r_[np.zeros(10, int), np.ones(20, int)]
     W = _hard_weights(labels, 3, soft=0.2)  # bone 2 owns no vertex
     C = rng.normal(size=(3, 3))
-    out = sk.shift_bones(X, W, C)
+    out = shift_bones(X, W, C)
     np.testing.assert_allclose(out[0], X[:10].mean(0))
     np.testing.assert_allclose(out[1], X[10:].mean(0))
     np.testing.assert_array_equal(out[2], C[2])
@@ -419,7 +453,7 @@ def test_fit_bones_to_parts_moves_a_tail_bone_onto_its_tilted_part():
         return W.argmax(1).numpy()
 
     assert (owners(C, Q)[tail_verts] == 1).mean() < 0.5  # the chord's bone misses its part
-    C2, Q2, moved = sk.fit_bones_to_parts(mesh.vertices, mesh.faces, parts, C, Q, min_faces=4)
+    C2, Q2, moved = fit_bones_to_parts(mesh.vertices, mesh.faces, parts, C, Q, min_faces=4)
     assert moved.all()
     tri = mesh.vertices[mesh.faces[parts == 1]]
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
@@ -433,12 +467,12 @@ def test_fit_bones_to_parts_moves_a_tail_bone_onto_its_tilted_part():
     assert (owners(C, Q)[outer] == 1).mean() < 0.2
     assert (owners(C2, Q2)[outer] == 1).mean() > 0.95
     # a part with fewer faces than min_faces keeps its bone; so does a bone no face names
-    C3, Q3, moved3 = sk.fit_bones_to_parts(mesh.vertices, mesh.faces, np.where(parts == 1, 5, 0), C, Q, min_faces=4)
+    C3, Q3, moved3 = fit_bones_to_parts(mesh.vertices, mesh.faces, np.where(parts == 1, 5, 0), C, Q, min_faces=4)
     assert moved3.tolist() == [True, False]
     np.testing.assert_array_equal(C3[1], C[1])
     np.testing.assert_array_equal(Q3[1], Q[1])
     with pytest.raises(ValueError, match="face_parts"):
-        sk.fit_bones_to_parts(mesh.vertices, mesh.faces, parts[:-1], C, Q)
+        fit_bones_to_parts(mesh.vertices, mesh.faces, parts[:-1], C, Q)
 
 
 def _limb(length, n=200, seed=7):
@@ -453,14 +487,14 @@ def _limb(length, n=200, seed=7):
 
 def test_grow_splits_stretched_end_part_in_order():
     X0, W0 = _limb(1.0)
-    ref = sk.part_extents(X0, W0)
+    ref = part_extents(X0, W0)
     X, W = _limb(3.0)  # the limb grew past 2x its initial extent
-    C = sk.shift_bones(X, W, np.zeros((2, 3)))
+    C = shift_bones(X, W, np.zeros((2, 3)))
     Q = np.stack([np.eye(3)] * 2)
     parents = np.array([-1, 0])
-    anchors = sk.parent_anchors(parents, [[0, 1]], [[1.0, 0, 0]])
+    anchors = parent_anchors(parents, [[0, 1]], [[1.0, 0, 0]])
     assert np.isnan(anchors[0]).all() and anchors[1].tolist() == [1, 0, 0]
-    e = sk.grow_skeleton(X, W, C, Q, parents, ref, growth_factor=2.0, sections=3, anchors=anchors)
+    e = grow_skeleton(X, W, C, Q, parents, ref, growth_factor=2.0, sections=3, anchors=anchors)
     assert e.num_bones == 4
     assert e.parents.tolist() == [-1, 0, 1, 2]  # parent -> section 1 -> section 2 -> section 3
     xs = e.centers[1:, 0]
@@ -471,16 +505,16 @@ def test_grow_splits_stretched_end_part_in_order():
     lab = np.argmin(np.abs(X[300:, 0, None] - xs[None]), 1)
     assert np.bincount(lab).min() > 50
     # the references are updated: growing again right away does nothing
-    assert e.extents is not None and (e.extents[1:] < sk.part_extents(X, W)[1]).all()
+    assert e.extents is not None and (e.extents[1:] < part_extents(X, W)[1]).all()
     # the torso is not a leaf and the limb did not stretch enough -> identity
-    assert not sk.grow_skeleton(X, W, C, Q, parents, ref * 2, growth_factor=2.0).changed
+    assert not grow_skeleton(X, W, C, Q, parents, ref * 2, growth_factor=2.0).changed
 
 
 def test_upsample_splits_every_bone_along_principal_axis():
     X, W = _chain()
-    C = sk.shift_bones(X, W, np.zeros((3, 3)))
+    C = shift_bones(X, W, np.zeros((3, 3)))
     Q = np.stack([np.eye(3)] * 3)
-    e = sk.upsample_skeleton(X, W, C, Q, np.array([-1, 0, 1]))
+    e = upsample_skeleton(X, W, C, Q, np.array([-1, 0, 1]))
     assert e.num_bones == 6
     # each old bone b -> new bones 2b (nearer its parent) and 2b+1; chained through the tree
     assert e.parents.tolist() == [-1, 0, 1, 2, 3, 4]
@@ -505,10 +539,10 @@ def test_joint_position_is_mean_of_shared_vertices_and_fallback():
     W[12:14] = [0.5, 0.39, 0.11]  # just below t_r for bone 1
     W[20:30] = [0.3, 0.0, 0.7]  # bones 0 and 2 never both >= 0.4
     W[20:23] = [0.35, 0.0, 0.65]
-    J = sk.joint_positions(X, W, [[0, 1], [0, 2]], t_r=0.4, fallback_count=3)
+    J = joint_positions(X, W, [[0, 1], [0, 2]], t_r=0.4, fallback_count=3)
     np.testing.assert_allclose(J[0], X[5:12].mean(0))
     np.testing.assert_allclose(J[1], X[20:23].mean(0))  # the 3 vertices of largest min(W0, W2)
-    Jt = sk.joint_positions(np.stack([X, X + 1]), W, [[0, 1]])
+    Jt = joint_positions(np.stack([X, X + 1]), W, [[0, 1]])
     np.testing.assert_allclose(Jt[1, 0], X[5:12].mean(0) + 1)
 
 
@@ -535,24 +569,24 @@ def test_surface_samples_cover_faces_evenly_with_gaussian_weights():
     X, F = _tube([0.0, 1.0, 2.0])
     C = np.array([[0, 0, 0.2], [0, 0, 1.8]])
     Q = np.stack([np.diag([1.0, 2.0, 3.0])] * 2)
-    assert sk.surface_samples(X, F, C, Q, 1) is None
+    assert surface_samples(X, F, C, Q, 1) is None
     for L in (2, 4):
-        s = sk.surface_samples(X, F, C, Q, L)
+        s = surface_samples(X, F, C, Q, L)
         E = len(np.unique(np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), 1), axis=0))
         assert len(s.index) == len(X) + (L - 1) * E + len(F) * (L - 1) * (L - 2) // 2
         np.testing.assert_allclose(s.bary.sum(1), 1.0)
         assert (s.bary >= 0).all()
         P = np.einsum("sk,skc->sc", s.bary, X[s.index])
         assert len(np.unique(P.round(9), axis=0)) == len(P)  # every point once
-        np.testing.assert_allclose(s.weights, sk.gaussian_weights(P, C, Q))
+        np.testing.assert_allclose(s.weights, gaussian_weights(P, C, Q))
     # the Gaussian weights are the skinning kernel's (float32)
     from s3o_warp.kernels.skinning import skinning_weights
 
     f32 = dict(dtype=torch.float32)
     Wk = skinning_weights(torch.tensor(P, **f32), torch.tensor(C, **f32), torch.tensor(Q, **f32)).numpy()
-    np.testing.assert_allclose(sk.gaussian_weights(P, C, Q), Wk, atol=1e-5)
+    np.testing.assert_allclose(gaussian_weights(P, C, Q), Wk, atol=1e-5)
     with pytest.raises(ValueError, match="faces"):
-        sk.surface_samples(X, F[:, :2], C, Q, 2)
+        surface_samples(X, F[:, :2], C, Q, 2)
 
 
 def test_joint_on_surface_samples_finds_a_boundary_between_vertex_rings():
@@ -561,30 +595,30 @@ def test_joint_on_surface_samples_finds_a_boundary_between_vertex_rings():
     X, F = _tube([-1.0, -0.5, 0.0, 0.5, 1.0, 1.5])
     C = np.array([[0, 0, -0.5], [0, 0, 1.0]])
     Q = np.stack([np.diag([1.0, 1.0, 40.0])] * 2)
-    W = sk.gaussian_weights(X, C, Q)
+    W = gaussian_weights(X, C, Q)
     assert (np.minimum(W[:, 0], W[:, 1]) < 0.4).all()
-    s = sk.surface_samples(X, F, C, Q, 8)
-    Jv = sk.joint_positions(X, W, [[0, 1]])[0]
-    Js = sk.joint_positions(X, W, [[0, 1]], samples=s)[0]
+    s = surface_samples(X, F, C, Q, 8)
+    Jv = joint_positions(X, W, [[0, 1]])[0]
+    Js = joint_positions(X, W, [[0, 1]], samples=s)[0]
     assert abs(Jv[2] - 0.25) > 0.2
     assert abs(Js[2] - 0.25) < 0.02 and np.linalg.norm(Js[:2]) < 0.02  # on the boundary and the tube's axis
-    S = sk.joint_selection(W, [[0, 1]], samples=s)
+    S = joint_selection(W, [[0, 1]], samples=s)
     assert S.shape == (1, len(X)) and (S >= 0).all()
     np.testing.assert_allclose(S.sum(1), 1.0)
     Y = X + np.array([0.3, -0.1, 2.0])  # the selection follows the (here translated) mesh
-    np.testing.assert_allclose(sk.joint_positions(np.stack([X, Y]), W, [[0, 1]], samples=s)[1, 0], Js + [0.3, -0.1, 2.0])
-    E = sk.bone_endpoints(X, W, [[0, 1]], samples=s)
+    np.testing.assert_allclose(joint_positions(np.stack([X, Y]), W, [[0, 1]], samples=s)[1, 0], Js + [0.3, -0.1, 2.0])
+    E = bone_endpoints(X, W, [[0, 1]], samples=s)
     np.testing.assert_allclose(E[0, 0] @ X, Js, atol=1e-12)  # an end bone's first end is its joint
     with pytest.raises(ValueError, match="samples"):
-        sk.joint_selection(W[:, :1], [[0, 0]], samples=s)
+        joint_selection(W[:, :1], [[0, 0]], samples=s)
 
 
 def test_bone_lengths_and_create_joints_for_stretching_bone():
     X, W = _chain()
-    pairs = sk.tree_joints(np.array([-1, 0, 1]))
+    pairs = tree_joints(np.array([-1, 0, 1]))
     assert pairs.tolist() == [[0, 1], [1, 2]]
-    E = sk.bone_endpoints(X, W, pairs)
-    L0 = sk.bone_lengths(E, X)
+    E = bone_endpoints(X, W, pairs)
+    L0 = bone_lengths(E, X)
     assert abs(L0[1] - 1.0) < 0.1  # joints at x ~ 1 and 2
     assert 0.7 < L0[0] < 1.2 and 0.7 < L0[2] < 1.2  # joint to far end
     rng = np.random.default_rng(9)
@@ -598,15 +632,15 @@ def test_bone_lengths_and_create_joints_for_stretching_bone():
         Y[mid, 0] = 1 + (X[mid, 0] - 1) * s
         Y[X[:, 0] >= 2, 0] += s - 1
         stretch.append(Y)
-    Lr = sk.bone_lengths_per_frame(E, np.stack(rigid))
-    Ls = sk.bone_lengths_per_frame(E, np.stack(stretch))
-    assert not sk.create_joints(Lr).any()
-    assert sk.create_joints(Ls).tolist() == [False, True, False]
-    assert not sk.create_joints(Ls[:2]).any()  # 10 % stretch: below t_d
+    Lr = bone_lengths_per_frame(E, np.stack(rigid))
+    Ls = bone_lengths_per_frame(E, np.stack(stretch))
+    assert not create_joints(Lr).any()
+    assert create_joints(Ls).tolist() == [False, True, False]
+    assert not create_joints(Ls[:2]).any()  # 10 % stretch: below t_d
     # creating the joint: bone 1 is split in two at the midpoint of its joints (x ~ 1.5)
-    C = sk.shift_bones(X, W, np.zeros((3, 3)))
+    C = shift_bones(X, W, np.zeros((3, 3)))
     Q = np.stack([np.eye(3)] * 3)
-    e = sk.split_at_joints(X, W, C, Q, np.array([-1, 0, 1]), E, sk.create_joints(Ls))
+    e = split_at_joints(X, W, C, Q, np.array([-1, 0, 1]), E, create_joints(Ls))
     assert e.num_bones == 4 and e.parents.tolist() == [-1, 0, 1, 2]
     assert [s[0][0] for s in e.sources] == [0, 1, 1, 2]
     assert e.joints.tolist() == [[1, 2]] and abs(e.joint_positions[0, 0] - 1.5) < 0.1
@@ -617,29 +651,29 @@ def test_bone_halves_cut_an_end_part_at_its_endpoints_midpoint():
     """The end bone of the chain (x in [2, 3], joint at 2) is cut at about x = 2.5: the near half first."""
     X, W = _chain()
     P = np.array([-1, 0, 1])
-    E = sk.bone_endpoints(X, W, sk.tree_joints(P))
-    C = sk.shift_bones(X, W, np.zeros((3, 3)))
-    bones, W2 = sk.bone_halves(X, W, C, P, E, np.array([False, False, True]))
+    E = bone_endpoints(X, W, tree_joints(P))
+    C = shift_bones(X, W, np.zeros((3, 3)))
+    bones, W2 = bone_halves(X, W, C, P, E, np.array([False, False, True]))
     assert bones.tolist() == [2] and W2.shape == (len(X), 2)
-    lab = sk.assign_parts(W)
+    lab = assign_parts(W)
     near, far = W2[:, 0] > 0, W2[:, 1] > 0
     assert not (near & far).any() and ((near | far) == (lab == 2)).all()
-    m = (sk.bone_endpoints(X, W, sk.tree_joints(P))[2] @ X).mean(0)[0]
+    m = (bone_endpoints(X, W, tree_joints(P))[2] @ X).mean(0)[0]
     assert 2.3 < m < 2.7 and X[near, 0].max() <= m + 1e-9 < X[far, 0].min()
     np.testing.assert_allclose(W2[near, 0], W[near, 2])
     # the same cut as the joint creation: its two new bones own the two halves
-    e = sk.split_at_joints(X, W, C, np.stack([np.eye(3)] * 3), P, E, np.array([False, False, True]))
+    e = split_at_joints(X, W, C, np.stack([np.eye(3)] * 3), P, E, np.array([False, False, True]))
     assert e.num_bones == 4 and e.centers[2, 0] < m < e.centers[3, 0]
     with pytest.raises(ValueError, match="bone_halves"):
-        sk.bone_halves(X, W, C, P[:2], E, np.array([False, False, True]))
+        bone_halves(X, W, C, P[:2], E, np.array([False, False, True]))
     # too few vertices for two halves: not cut
-    assert len(sk.bone_halves(X, W, C, P, E, np.array([False, False, True]), min_section_vertices=len(X))[0]) == 0
+    assert len(bone_halves(X, W, C, P, E, np.array([False, False, True]), min_section_vertices=len(X))[0]) == 0
 
 
 def _bending_end_part(bend: bool, T: int = 5):
     """The chain seen side on (x right, y down, depth 4), its end bone (x in [2, 3]) turning about the joint at
     x = 2 in the image plane, 0.1 rad per frame; with ``bend`` its far half (x > 2.5) turns twice as fast
-    about x = 2.5 in the video (a knee inside the part). Returns the arguments of :func:`sk.bone_flow`, with
+    about x = 2.5 in the video (a knee inside the part). Returns the arguments of :func:`bone_flow`, with
     the fitted motion (``predicted``) the rigid turn."""
     X, W = _chain()
     X = X - np.array([1.5, 0, -4.0])  # x in [-1.5, 1.5] at depth 4
@@ -677,11 +711,11 @@ def test_unexplained_motion_finds_a_knee_inside_an_end_bone(bend):
     the fit turns the part as a whole, the video's far half turns twice as much)."""
     X, W, args, pred = _bending_end_part(bend)
     P = np.array([-1, 0, 1])
-    E = sk.bone_endpoints(X, W, sk.tree_joints(P))
-    bones, W2 = sk.bone_halves(X, W, sk.shift_bones(X, W, np.zeros((3, 3))), P, E, np.array([False, False, True]))
-    F, ok, G = sk.bone_flow(*args, torch.tensor(W2, dtype=torch.float32), predicted=pred)
+    E = bone_endpoints(X, W, tree_joints(P))
+    bones, W2 = bone_halves(X, W, shift_bones(X, W, np.zeros((3, 3))), P, E, np.array([False, False, True]))
+    F, ok, G = bone_flow(*args, torch.tensor(W2, dtype=torch.float32), predicted=pred)
     assert ok.all()
-    r, n = sk.unexplained_motion(F, G, ok, [[0, 1]], min_flow=0.1)
+    r, n = unexplained_motion(F, G, ok, [[0, 1]], min_flow=0.1)
     assert n.tolist() == [4]
     if bend:
         assert r[0] > 0.4
@@ -698,14 +732,14 @@ def test_unexplained_motion_values_and_frames():
     F[:, 3] = torch.tensor([0.1, 0.0])   # pair (2, 3): both barely move
     G[:, 3] = torch.tensor([-0.1, 0.0])
     ok = torch.ones(4, 4, dtype=torch.bool)
-    r, n = sk.unexplained_motion(F, G, ok, [[0, 1], [2, 3]], min_flow=0.5)
+    r, n = unexplained_motion(F, G, ok, [[0, 1], [2, 3]], min_flow=0.5)
     np.testing.assert_allclose(r, [0.75, 0.0])
     assert n.tolist() == [4, 4]
     ok[1:, 0] = False
-    r, n = sk.unexplained_motion(F, G, ok, [[0, 1], [2, 3]], min_flow=0.5, min_frames=2)
+    r, n = unexplained_motion(F, G, ok, [[0, 1], [2, 3]], min_flow=0.5, min_frames=2)
     assert np.isnan(r[0]) and n.tolist() == [1, 4]
     with pytest.raises(ValueError, match="pairs"):
-        sk.unexplained_motion(F, G, ok, [[0, 4]])
+        unexplained_motion(F, G, ok, [[0, 4]])
 
 
 def _is_tree(parents):
@@ -728,22 +762,22 @@ def test_kinematic_tree_is_a_spanning_tree():
     joints = np.array([[0, 1], [1, 2], [2, 0], [2, 3], [4, 5]])
     C = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [2, 1, 0], [3, 1.2, 0], [4, 1, 0]], float)
     W = _hard_weights(np.r_[np.ones(5, int), np.zeros(3, int), np.arange(6)], 6)
-    p = sk.kinematic_tree(6, joints, weights=W, centers=C)
+    p = kinematic_tree(6, joints, weights=W, centers=C)
     assert _is_tree(p) and p[1] == -1  # the root is the bone with the most vertices
     assert p[4] == 3 and p[5] == 4
     assert p[0] == 1 and p[2] == 1 and p[3] == 2
-    p0 = sk.kinematic_tree(6, joints, root=5)
+    p0 = kinematic_tree(6, joints, root=5)
     assert _is_tree(p0) and p0[5] == -1
     with pytest.raises(ValueError, match="joints must index"):
-        sk.kinematic_tree(3, [[0, 3]])
+        kinematic_tree(3, [[0, 3]])
 
 
 def test_virtual_bones_deterministic_with_seed():
     rng = np.random.default_rng(10)
     X = rng.normal(size=(500, 3)) * [3, 1, 1]
-    c1, q1 = sk.virtual_bones(X, 8, seed=3)
-    c2, q2 = sk.virtual_bones(X, 8, seed=3)
-    c3, _ = sk.virtual_bones(X, 8, seed=4)
+    c1, q1 = virtual_bones(X, 8, seed=3)
+    c2, q2 = virtual_bones(X, 8, seed=3)
+    c3, _ = virtual_bones(X, 8, seed=4)
     np.testing.assert_array_equal(c1, c2)
     np.testing.assert_array_equal(q1, q2)
     assert not np.allclose(np.sort(c1[:, 0]), np.sort(c3[:, 0]))
@@ -752,19 +786,19 @@ def test_virtual_bones_deterministic_with_seed():
     assert np.abs(off).max() == 0 and (q1[:, 0, 0] > 0).all()  # isotropic, positive
     lab = np.argmin(((X[:, None] - c1[None]) ** 2).sum(-1), 1)
     var = np.array([((X[lab == b] - c1[b]) ** 2).sum(1).mean() / 3 for b in range(8)])
-    np.testing.assert_allclose(q1[:, 0, 0], sk.DEFAULT_SHARPNESS / var, rtol=1e-6)
+    np.testing.assert_allclose(q1[:, 0, 0], DEFAULT_SHARPNESS / var, rtol=1e-6)
 
 
 def test_skeleton_json_shapes():
     C = np.arange(6.0).reshape(2, 3)
     Q = np.stack([np.eye(3), 2 * np.eye(3)])
-    d = sk.skeleton_json(C, Q, [1.0, 2.0], [-1, 0], [[0, 1]], [[0.5, 0.5, 0.5]])
+    d = skeleton_json(C, Q, [1.0, 2.0], [-1, 0], [[0, 1]], [[0.5, 0.5, 0.5]])
     d = json.loads(json.dumps(d))
     assert [len(r) for r in d["B"]] == [13, 13] and [len(r) for r in d["J"]] == [5]
     assert d["B"][1][:3] == [3, 4, 5] and d["B"][1][3] == 2 and d["B"][1][-1] == 2
     assert d["J"][0] == [0, 1, 0.5, 0.5, 0.5] and d["root"] == 0 and d["parents"] == [-1, 0]
     with pytest.raises(ValueError, match="precisions must have shape"):
-        sk.skeleton_json(C, Q[:1], [1.0, 2.0], [-1, 0], [], [])
+        skeleton_json(C, Q[:1], [1.0, 2.0], [-1, 0], [], [])
 
 
 def test_precision_round_trip():
@@ -772,7 +806,7 @@ def test_precision_round_trip():
     R = axis_angle_to_matrix(torch.tensor(rng.normal(size=(4, 3)))).numpy()
     s = rng.normal(size=(4, 3))
     Q = np.transpose(R, (0, 2, 1)) @ (np.exp(s)[..., None] * R)  # V^T diag(exp s) V with V = R
-    q, ls = sk.precision_to_quat_scales(Q)
+    q, ls = precision_to_quat_scales(Q)
     from s3o_warp.geometry import quat_to_matrix
 
     V = quat_to_matrix(torch.tensor(q)).numpy()
@@ -788,7 +822,7 @@ def test_precision_round_trip_of_tilted_limbs():
     long_axis = np.stack([np.cos(a), np.sin(a), np.where(np.arange(len(a)) % 2 == 0, 0.0, 0.3 * np.sin(3 * a))], 1)
     long_axis /= np.linalg.norm(long_axis, axis=1, keepdims=True)
     Q = 2.0 * (np.eye(3) / 0.03**2 + (1 / 0.2**2 - 1 / 0.03**2) * long_axis[:, :, None] * long_axis[:, None, :])
-    q, ls = sk.precision_to_quat_scales(Q)
+    q, ls = precision_to_quat_scales(Q)
     V = quat_to_matrix(torch.tensor(q)).numpy()
     back = np.transpose(V, (0, 2, 1)) @ (np.exp(ls)[..., None] * V)
     np.testing.assert_allclose(back, Q, rtol=0, atol=1e-8 * np.abs(Q).max())
@@ -872,16 +906,16 @@ def test_remap_split_keeps_posed_mesh_and_loss(device):
     X = m.verts.detach()
     W = m.skinning().detach()
     C, Q = m.bone_centers.detach(), m.precisions().detach()
-    e = sk.upsample_skeleton(X, W, C, Q, np.array([-1, 0]))
+    e = upsample_skeleton(X, W, C, Q, np.array([-1, 0]))
     assert e.num_bones == 4
     # baseline for "a jump": the same split with the new bones at rest (no inherited motion)
     m_rest = copy.deepcopy(m)
-    sk.apply_edit(m_rest, None, e)
+    apply_edit(m_rest, None, e)
     with torch.no_grad():
         m_rest.bone_aa.zero_()
         m_rest.bone_t.zero_()
         rest = m_rest.forward(frames)
-    sk.apply_edit(m, opt, e)
+    apply_edit(m, opt, e)
     assert m.num_bones == 4 and m.bone_aa.shape == (m.num_frames, 4, 3)
     assert all(getattr(m, n).device == before.device for n in ("bone_centers", "bone_quat", "bone_t"))
     with torch.no_grad():
@@ -918,14 +952,14 @@ def test_remap_carries_adam_state_for_unchanged_bone():
     _steps(m, opt, target, 4)
     X, W = m.verts.detach(), m.skinning().detach()
     C, Q = m.bone_centers.detach(), m.precisions().detach()
-    e = sk.upsample_skeleton(X, W, C, Q, np.array([-1, 0]), min_section_vertices=len(X))
+    e = upsample_skeleton(X, W, C, Q, np.array([-1, 0]), min_section_vertices=len(X))
     assert not e.changed
     # split only bone 1 (grow: it is a leaf; its reference extent is tiny)
-    e = sk.grow_skeleton(X, W, C, Q, np.array([-1, 0]), np.array([1e9, 1e-3]), sections=2)
+    e = grow_skeleton(X, W, C, Q, np.array([-1, 0]), np.array([1e9, 1e-3]), sections=2)
     assert e.num_bones == 3 and e.kept.tolist() == [True, False, False]
     m_old, opt_old = copy.deepcopy((m, opt))
     old_state = {k: v.clone() for k, v in opt.state[m.bone_aa].items()}
-    sk.apply_edit(m, opt, e)
+    apply_edit(m, opt, e)
     # state mapped by the same sources: halves carry bone 1's moments exactly
     st = opt.state[m.bone_aa]
     for key in ("exp_avg", "exp_avg_sq"):
@@ -955,8 +989,8 @@ def test_remap_repivots_shift_and_merge_exactly():
     W = m.skinning().detach()
     with torch.no_grad():
         before = m.forward(frames, weights=W)
-    C = sk.shift_bones(m.verts.detach(), W, m.bone_centers.detach()) + np.array([0.1, -0.2, 0.05])
-    sk.remap_bones(m, opt, [[(0, 1.0)], [(1, 1.0)]], C, m.bone_quat, m.bone_log_scales)
+    C = shift_bones(m.verts.detach(), W, m.bone_centers.detach()) + np.array([0.1, -0.2, 0.05])
+    remap_bones(m, opt, [[(0, 1.0)], [(1, 1.0)]], C, m.bone_quat, m.bone_log_scales)
     with torch.no_grad():
         torch.testing.assert_close(m.forward(frames, weights=W), before, atol=2e-5, rtol=0)
         # give both bones the same affine motion, then merge them with 30/70 weights
@@ -966,12 +1000,12 @@ def test_remap_repivots_shift_and_merge_exactly():
         m.bone_t[:, 1] = a - m.bone_centers[1] + (R @ m.bone_centers[1][:, None])[..., 0]
         before = m.forward(frames, weights=W)
     q = matrix_to_quat(torch.eye(3, dtype=torch.float64))[None]
-    sk.remap_bones(m, opt, [[(0, 0.3), (1, 0.7)]], torch.zeros(1, 3), q, torch.zeros(1, 3))
+    remap_bones(m, opt, [[(0, 0.3), (1, 0.7)]], torch.zeros(1, 3), q, torch.zeros(1, 3))
     with torch.no_grad():
         after = m.forward(frames, weights=W.sum(1, keepdim=True))
     torch.testing.assert_close(after, before, atol=2e-5, rtol=0)
     assert opt.state[m.bone_aa]["exp_avg"].shape == (m.num_frames, 1, 3)
     with pytest.raises(ValueError, match="weights must sum to 1"):
-        sk.remap_bones(m, opt, [[(0, 0.5)]], torch.zeros(1, 3), q, torch.zeros(1, 3))
+        remap_bones(m, opt, [[(0, 0.5)]], torch.zeros(1, 3), q, torch.zeros(1, 3))
     with pytest.raises(ValueError, match="must list old bones"):
-        sk.remap_bones(m, opt, [[(3, 1.0)]], torch.zeros(1, 3), q, torch.zeros(1, 3))
+        remap_bones(m, opt, [[(3, 1.0)]], torch.zeros(1, 3), q, torch.zeros(1, 3))
