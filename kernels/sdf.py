@@ -10,7 +10,7 @@ resampling (``s3o_warp.resample``), where no gradient flows. The dense twin is
 ``s3o_warp.reference.sdf.closest_point_naive``.
 
 ``ray_hit`` casts rays against the same kind of BVH (``wp.mesh_query_ray``): the nearest hit along each
-ray, for centring joints inside the body (``s3o_warp.skeleton.measures.centre_in_body``); its twin is
+ray, for centring joints inside the body (``s3o_warp.skeleton.joints.centre_in_body``); its twin is
 ``s3o_warp.reference.sdf.ray_hit_naive``.
 """
 

@@ -429,7 +429,7 @@ def test_ray_hit_matches_naive(device):
 
 
 def test_centre_in_body_puts_joints_on_a_tube_axis():
-    from s3o_warp.skeleton.measures import centre_in_body
+    from s3o_warp.skeleton.joints import centre_in_body
 
     tube = trimesh.creation.cylinder(radius=0.1, height=1.0, sections=48)  # axis z
     v, f = trimesh.remesh.subdivide_to_size(tube.vertices, tube.faces, max_edge=0.05)  # rings along the side

@@ -1025,7 +1025,7 @@ def empty_bones(weights: np.ndarray) -> dict:
     W = np.asarray(weights)
     if W.ndim != 2 or W.shape[1] == 0:
         raise ValueError(f"empty_bones(): weights must have shape (N, B) with B >= 1, got {W.shape}")
-    from s3o_warp.skeleton.edit import assign_parts
+    from s3o_warp.skeleton.measures import assign_parts
 
     owned = np.bincount(assign_parts(W), minlength=W.shape[1])
     return {"count": int(W.shape[1]), "empty": np.flatnonzero(owned == 0).tolist()}

@@ -49,12 +49,12 @@ def rig_from_model(fitter):
         joints = np.asarray(sk.joint_positions, dtype=np.float64)
     lengths = None
     if pairs is not None:
-        from s3o_warp.skeleton import measures as skl
+        from s3o_warp.skeleton.joints import bone_endpoints
+        from s3o_warp.skeleton.measures import bone_lengths
         from s3o_warp.skeleton.mstep import joint_samples
 
         X, Wn = _np(m.verts), _np(W)
-        lengths = skl.bone_lengths(skl.bone_endpoints(X, Wn, pairs, t_r=fitter.cfg.skeleton.t_r,
-                                                      samples=joint_samples(m)), X)
+        lengths = bone_lengths(bone_endpoints(X, Wn, pairs, t_r=fitter.cfg.skeleton.t_r, samples=joint_samples(m)), X)
     return Rig(
         verts=_np(m.verts).astype(np.float32),
         faces=m.faces.cpu().numpy().astype(np.int32),

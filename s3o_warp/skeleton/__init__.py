@@ -1,1 +1,1 @@
-"""The M-step (paper 3.4): bone flow and measures, skeleton edits and their schedule."""
+"""The M-step (paper 3.4): measures (bone flow, motion similarity, lengths, tree), edits, joints, remap, schedule."""

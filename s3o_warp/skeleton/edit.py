@@ -1,18 +1,14 @@
-"""Skeleton edits of the M-step (paper 3.4): bone shifting, growth, upsampling, joint creation, merging.
-
-Every edit is a pure function of the canonical vertices ``X^0 = M_c`` ``(N, 3)``, the skinning
-weights ``W`` ``(N, B)`` and the current bones (centres ``C`` ``(B, 3)``, precisions ``Q`` ``(B, 3, 3)``,
-kinematic tree ``parents`` ``(B,)`` with -1 for a root), all in the canonical object frame. An edit
-returns a :class:`SkeletonEdit`: the new bone list plus, for each new bone, the old bones (with
-weights) whose motion it inherits. :func:`remap_bones` then applies that to an ``S3OModel`` and its
-Adam optimiser in place, so the posed mesh does not jump.
-
-Notation: ``I_b`` the vertices whose argmax weight is bone b (the "semi-rigid part" of b, eq. 5);
-``S_b = sum_n W[n, b]`` a bone's weight mass. A section's precision comes from its vertices'
-covariance: ``Q = sharpness * (Sigma + eps tr(Sigma)/3 I)^-1``. With the default sharpness 2/3, points
-on the surface of an ellipsoid with radii r (surface variance r^2/3 per axis) get ``Q = 2 / r^2``: the
-precision the coarse initialisation gives the same ellipsoid with ``precision_sharpness = 2``.
-
+"""Skeleton edits of the M-step (paper 3.4) as pure functions: bone shifting (eq. 5) and fitting bones to
+labelled parts, skeleton growth at stretched end parts, the one skeleton upsampling of Algorithm 1 (epoch e1),
+bone merging (eqs. 8-9, log-space weights) and the pruning of short or empty bones (not in the paper); joint
+creation (eqs. 6-7) is in :mod:`s3o_warp.skeleton.joints`. Each edit takes the canonical vertices ``X^0 = M_c``
+``(N, 3)``, the skinning weights ``W`` ``(N, B)`` and the bones (centres ``C`` ``(B, 3)``, precisions ``Q``
+``(B, 3, 3)``, kinematic tree ``parents`` ``(B,)``, -1 for a root), all in the object frame, and returns a
+:class:`SkeletonEdit`: the new bones and, for each, the old bones (with weights) whose motion it inherits, which
+:func:`s3o_warp.skeleton.remap.apply_edit` applies to the model without a jump in the posed mesh. A new bone's
+precision comes from its vertices' covariance, ``Q = sharpness * (Sigma + eps tr(Sigma)/3 I)^-1``: with the
+default sharpness 2/3, points on the surface of an ellipsoid with radii r (surface variance r^2/3 per axis) get
+``Q = 2 / r^2``, the precision the coarse initialisation gives the same ellipsoid (``precision_sharpness = 2``).
 Inputs may be numpy arrays or torch tensors; outputs are float64/int64 numpy arrays.
 """
 
@@ -20,78 +16,24 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Literal, Sequence
+from typing import Literal
 
 import numpy as np
 import torch
 
+from s3o_warp.geometry import axis_angle_to_matrix, matrix_to_quat
+from s3o_warp.skeleton.measures import _bones_in, _check, _diameter, _np, assign_parts, children_of, part_extents
+
 log = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------------------------------------------
+# precisions
+# ---------------------------------------------------------------------------------------------------
+
 
 DEFAULT_SHARPNESS = 2.0 / 3.0
 """Precision of a new bone = sharpness x inverse covariance of its vertices (see module docstring)."""
-
-
-# ---------------------------------------------------------------------------------------------------
-# small helpers
-# ---------------------------------------------------------------------------------------------------
-
-
-def _np(x, dtype=np.float64) -> np.ndarray:
-    if isinstance(x, torch.Tensor):
-        x = x.detach().cpu().numpy()
-    return np.asarray(x, dtype=dtype)
-
-
-def _check(name: str, arg: str, a: np.ndarray, shape: tuple) -> None:
-    if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape)):
-        want = "(" + ", ".join("?" if s is None else str(s) for s in shape) + ")"
-        raise ValueError(f"{name}(): {arg} must have shape {want}, got {tuple(a.shape)}")
-
-
-def _bones_in(name: str, verts, weights, centers=None, precisions=None, parents=None):
-    X = _np(verts)
-    _check(name, "verts", X, (None, 3))
-    W = _np(weights)
-    _check(name, "weights", W, (X.shape[0], None))
-    B = W.shape[1]
-    out = [X, W]
-    if centers is not None:
-        C = _np(centers)
-        _check(name, "centers", C, (B, 3))
-        out.append(C)
-    if precisions is not None:
-        Q = _np(precisions)
-        _check(name, "precisions", Q, (B, 3, 3))
-        out.append(Q)
-    if parents is not None:
-        P = _np(parents, np.int64)
-        _check(name, "parents", P, (B,))
-        if ((P < -1) | (P >= B)).any():
-            raise ValueError(f"{name}(): parents entries must be -1 (a root) or a bone index in [0, {B})")
-        out.append(P)
-    return out
-
-
-def assign_parts(weights) -> np.ndarray:
-    """``(N,)`` int64 argmax bone of each vertex: vertex n belongs to the part ``I_b`` of ``b = argmax_b W[n, b]``."""
-    return np.argmax(_np(weights), axis=1).astype(np.int64)
-
-
-def children_of(parents) -> list[list[int]]:
-    """Children lists of a kinematic tree given as ``parents`` ``(B,)`` (-1 = root)."""
-    P = _np(parents, np.int64)
-    ch: list[list[int]] = [[] for _ in range(len(P))]
-    for b, p in enumerate(P):
-        if p >= 0:
-            ch[int(p)].append(b)
-    return ch
-
-
-def tree_joints(parents) -> np.ndarray:
-    """``(J, 2)`` int64 joints of a kinematic tree: one ``(parent, child)`` pair per non-root bone, by child index."""
-    P = _np(parents, np.int64)
-    kids = np.flatnonzero(P >= 0)
-    return np.stack([P[kids], kids], 1).astype(np.int64).reshape(-1, 2)
 
 
 def precision_from_points(points, sharpness: float = DEFAULT_SHARPNESS, eps: float = 1e-2,
@@ -123,25 +65,12 @@ def precision_to_quat_scales(precisions) -> tuple[np.ndarray, np.ndarray]:
         ``quats`` ``(B, 4)`` (w, x, y, z) of the orientation V (rows = the Gaussian's axes) and
         ``log_scales`` ``(B, 3)`` = s, both float64. Eigenvalues are clamped at 1e-12.
     """
-    from s3o_warp.geometry import matrix_to_quat
-
     Q = _np(precisions).reshape(-1, 3, 3)
     lam, U = np.linalg.eigh(0.5 * (Q + np.transpose(Q, (0, 2, 1))))
     V = np.transpose(U, (0, 2, 1)).copy()
     V[np.linalg.det(V) < 0, 2] *= -1  # proper rotations (flipping an axis leaves Q unchanged)
     quats = matrix_to_quat(torch.as_tensor(V)).numpy()
     return quats, np.log(np.maximum(lam, 1e-12))
-
-
-def part_extents(verts, weights) -> np.ndarray:
-    """``(B,)`` maximum internal distance of each part ``I_b`` (diameter of its argmax vertices; 0 if < 2).
-
-    The diameter is exact: the farthest pair of a point set lies on its convex hull (scipy's Qhull,
-    joggled for flat sets), so only hull vertices are compared.
-    """
-    X, W = _bones_in("part_extents", verts, weights)
-    lab = assign_parts(W)
-    return np.array([_diameter(X[lab == b]) for b in range(W.shape[1])], np.float64)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -207,8 +136,8 @@ def shift_bones(verts, weights, centers) -> np.ndarray:
     """Bone shifting, eq. 5: ``C_b <- (1/|I_b|) sum_{n in I_b} X_n^0``, the centroid of b's argmax part.
 
     Bones that are the argmax of no vertex keep their centre. Apply the result with
-    :func:`remap_bones` (identity ``sources``), which re-pivots each bone's per-frame translation so the
-    posed mesh is unchanged by the move.
+    :func:`s3o_warp.skeleton.remap.remap_bones` (identity ``sources``), which re-pivots each bone's per-frame
+    translation so the posed mesh is unchanged by the move.
 
     Args:
         verts: ``(N, 3)`` canonical vertices ``X^0`` (object frame).
@@ -251,8 +180,6 @@ def fit_bones_to_parts(verts, faces, face_parts, centers, precisions, min_faces:
     Returns:
         ``(centers (B, 3), precisions (B, 3, 3), moved (B,) bool)``, float64.
     """
-    from s3o_warp.geometry import axis_angle_to_matrix
-
     X = _np(verts)
     Fc = np.asarray(faces, dtype=np.int64)
     fp = np.asarray(face_parts, dtype=np.int64).reshape(-1)
@@ -358,21 +285,6 @@ def _apply_splits(X, W, C, Q, P, splits: dict, sharpness: float, extents=None) -
         np.asarray(joints, np.int64).reshape(-1, 2), np.asarray(jpos, np.float64).reshape(-1, 3))
 
 
-def _diameter(p: np.ndarray) -> float:
-    """Largest pairwise distance of a point set (0 for fewer than 2 points)."""
-    from scipy.spatial import ConvexHull
-    from scipy.spatial.distance import pdist
-
-    if len(p) < 2:
-        return 0.0
-    if len(p) > 64:
-        try:
-            p = p[ConvexHull(p, qhull_options="QJ").vertices]
-        except Exception:  # noqa: BLE001 - Qhull fails on degenerate sets; the pairwise check is exact anyway
-            pass
-    return float(pdist(p).max())
-
-
 def _principal_axis(p: np.ndarray) -> np.ndarray:
     c = p - p.mean(0)
     _, _, vt = np.linalg.svd(c, full_matrices=False)
@@ -409,7 +321,7 @@ def grow_skeleton(
     are projected on the direction and cut into ``sections`` equal-count (``split="count"``) or
     equal-length (``"length"``) sections; each becomes a bone at the section centroid with the
     section's covariance precision, chained parent -> section 1 (nearest the anchor) -> ... -> section k.
-    Both halves of the motion come from the old bone (exact copy, see :func:`remap_bones`).
+    Both halves of the motion come from the old bone (exact copy, see :func:`s3o_warp.skeleton.remap.remap_bones`).
 
     Args:
         verts: ``(N, 3)`` canonical vertices. weights: ``(N, B)`` W. centers: ``(B, 3)`` C.
@@ -523,107 +435,7 @@ def upsample_skeleton(
 
 
 # ---------------------------------------------------------------------------------------------------
-# joint creation (eqs. 6-7, corrected)
-# ---------------------------------------------------------------------------------------------------
-
-
-def _cut_inputs(name: str, X: np.ndarray, W: np.ndarray, endpoints, bones):
-    """The checked ``(B,)`` selection, the canonical endpoints ``(B, 2, 3)`` and the parts, for a midpoint cut."""
-    B = W.shape[1]
-    E = _np(endpoints)
-    _check(name, "endpoints", E, (B, 2, X.shape[0]))
-    sel = _np(bones, bool)
-    _check(name, "bones", sel, (B,))
-    return sel, np.einsum("bkn,nc->bkc", E, X), assign_parts(W)
-
-
-def _midpoint_cut(X, lab, ends, C, P, b: int, min_section_vertices: int):
-    """Bone b's part cut by the plane through its endpoints' midpoint m, perpendicular to them: ``(sec, m)``
-    with ``sec`` 0 on the parent's side and 1 beyond (over the part's vertices, in order), or None when a side
-    would own fewer than ``min_section_vertices``."""
-    pts = X[lab == b]
-    d = ends[b, 1] - ends[b, 0]
-    if np.linalg.norm(d) < 1e-12 or len(pts) < 2 * min_section_vertices:
-        return None
-    m = ends[b].mean(0)
-    if P[b] >= 0 and (C[P[b]] - m) @ d > 0:
-        d = -d
-    sec = ((pts - m) @ d > 0).astype(np.int64)
-    if np.bincount(sec, minlength=2).min() < min_section_vertices:
-        return None
-    return sec, m
-
-
-def bone_halves(verts, weights, centers, parents, endpoints, bones, min_section_vertices: int = 4):
-    """The two halves :func:`split_at_joints` would cut the selected bones' parts into, as blend weights.
-
-    Returns ``(halves, W2)``: the bones that can be cut ``(K,)`` and ``(N, 2K)`` weights, columns ``2k`` (the
-    parent's side) and ``2k + 1`` (beyond) holding bone ``halves[k]``'s weights on its part's vertices of that
-    half, 0 elsewhere (for :func:`s3o_warp.skeleton.measures.bone_flow` and :func:`s3o_warp.skeleton.measures.unexplained_motion`).
-    """
-    X, W, C, P = _bones_in("bone_halves", verts, weights, centers, parents=parents)
-    sel, ends, lab = _cut_inputs("bone_halves", X, W, endpoints, bones)
-    halves, cols = [], []
-    for b in np.flatnonzero(sel):
-        cut = _midpoint_cut(X, lab, ends, C, P, int(b), min_section_vertices)
-        if cut is None:
-            continue
-        idx = np.flatnonzero(lab == b)
-        for side in (0, 1):
-            w = np.zeros(X.shape[0])
-            w[idx[cut[0] == side]] = W[idx[cut[0] == side], b]
-            cols.append(w)
-        halves.append(int(b))
-    W2 = np.stack(cols, 1) if cols else np.zeros((X.shape[0], 0))
-    return np.asarray(halves, np.int64), W2
-
-
-def split_at_joints(
-    verts,
-    weights,
-    centers,
-    precisions,
-    parents,
-    endpoints,
-    bones,
-    sharpness: float = DEFAULT_SHARPNESS,
-    min_section_vertices: int = 4,
-    extents=None,
-) -> SkeletonEdit:
-    """Create a joint (eq. 7): split each selected bone in two at the midpoint of its two endpoints.
-
-    The paper places the new joint ``J~`` at the average of the bone's two joints ``J_j``, ``J_j'`` and
-    redirects their connection through it. Here: the part ``I_b`` is cut by the plane through the
-    midpoint ``m = (e_0 + e_1)/2`` of the bone's canonical endpoints (``endpoints @ verts``, see
-    :func:`s3o_warp.skeleton.measures.bone_endpoints`) perpendicular to ``e_1 - e_0``; each side becomes a bone
-    (centroid, covariance precision), chained on the parent's side first, with a new joint at m.
-
-    Args:
-        verts, weights, centers, precisions, parents: as in :func:`grow_skeleton`.
-        endpoints: ``(B, 2, N)`` row-normalised endpoint selection matrix.
-        bones: ``(B,)`` bool, which bones get a joint (:func:`s3o_warp.skeleton.measures.create_joints`).
-        sharpness, min_section_vertices, extents: as in :func:`upsample_skeleton`.
-
-    Returns:
-        A :class:`SkeletonEdit`; ``joint_positions`` holds the midpoints m.
-    """
-    X, W, C, Q, P = _bones_in("split_at_joints", verts, weights, centers, precisions, parents)
-    sel, ends, lab = _cut_inputs("split_at_joints", X, W, endpoints, bones)
-    splits, mids = {}, {}
-    for b in np.flatnonzero(sel):
-        cut = _midpoint_cut(X, lab, ends, C, P, int(b), min_section_vertices)
-        if cut is not None:
-            splits[int(b)], mids[int(b)] = cut
-    if not splits:
-        return _identity_edit(C, Q, P, extents)
-    edit = _apply_splits(X, W, C, Q, P, splits, sharpness, extents=None if extents is None else _np(extents))
-    # the joint of a split bone sits at the endpoints' midpoint (same order as edit.joints: by bone)
-    edit.joint_positions = np.asarray([mids[b] for b in splits]).reshape(-1, 3)
-    return edit
-
-
-# ---------------------------------------------------------------------------------------------------
-# bone merging (eqs. 8-9, log-space weights)
+# bone merging (eqs. 8-9, log-space weights) and pruning
 # ---------------------------------------------------------------------------------------------------
 
 
@@ -782,166 +594,15 @@ def prune_short_bones(lengths, min_length: float, weights, centers, precisions, 
     return _merge_pairs("prune_short_bones", pairs, weights, centers, precisions, P, 1.0, extents)
 
 
-# ---------------------------------------------------------------------------------------------------
-# model surgery
-# ---------------------------------------------------------------------------------------------------
-
-
-def _mix(old: torch.Tensor, dim: int, sources: Sequence) -> torch.Tensor:
-    """new[..., j, ...] = sum_i w_ji old[..., i, ...] along ``dim``; single weight-1 sources are copied exactly."""
-    cols = []
-    for src in sources:
-        if len(src) == 1 and src[0][1] == 1.0:
-            cols.append(old.select(dim, src[0][0]))
-        else:
-            acc = sum(float(w) * old.select(dim, i) for i, w in src)
-            cols.append(acc)
-    return torch.stack(cols, dim)
-
-
-def remap_bones(model, optimizer, sources, centers, quats, log_scales) -> None:
-    """Replace the bone set of an ``S3OModel`` in place, carrying motion and Adam state over.
-
-    New ``nn.Parameter`` objects replace ``bone_centers`` ``(B', 3)``, ``bone_quat`` ``(B', 4)`` (w, x, y,
-    z), ``bone_log_scales`` ``(B', 3)``, ``bone_aa`` ``(T, B', 3)`` and ``bone_t`` ``(T, B', 3)``.
-
-    Motion: new bone j with sources ``[(i, w_i)]`` gets ``aa_j = sum_i w_i aa_i`` and the translation
-    that reproduces the blend of its sources' affine maps about the NEW centre. The model poses bone b
-    as ``A_b = [R_b | c_b + t_b - R_b c_b]`` (rotation about its own centre), so with ``R_j = R(aa_j)``::
-
-        t_j = sum_i w_i t_i + sum_i w_i (I - R_i)(c_i - c_j) + (sum_i w_i R_i - R_j) c_j
-
-    For a single source (a split, a shifted or an unchanged bone) ``R_j = R_i`` and ``A_j = A_i``
-    exactly: the posed mesh changes only through the skinning weights of the new Gaussians.
-
-    Optimiser: every state tensor of the old parameters that has the parameter's shape (Adam's
-    ``exp_avg``, ``exp_avg_sq``, ...) is mapped with the same weights along the bone axis (copied bit
-    for bit for single weight-1 sources); other entries (``step``) are copied. The optimiser's
-    param_groups then point at the new parameters. Parameters the optimiser does not hold are just
-    replaced. ``optimizer`` may be None.
-
-    Args:
-        model: the ``S3OModel``.
-        optimizer: a ``torch.optim`` optimiser over (some of) the model's parameters, or None.
-        sources: one list of ``(old bone, weight)`` per new bone (weights summing to 1).
-        centers: ``(B', 3)`` new Gaussian centres. quats: ``(B', 4)`` (w, x, y, z). log_scales: ``(B', 3)``.
-
-    Raises:
-        ValueError: mismatched lengths, an out-of-range source index or weights not summing to 1.
-    """
-    from s3o_warp.geometry import axis_angle_to_matrix
-
-    name = "remap_bones"
-    B_old = model.num_bones
-    Bn = len(sources)
-    ref = model.bone_centers
-    dt = dict(dtype=ref.dtype, device=ref.device)
-
-    def as_t(x) -> torch.Tensor:
-        return x.detach().to(**dt) if isinstance(x, torch.Tensor) else torch.as_tensor(_np(x), **dt)
-
-    cn, qn, sn = as_t(centers), as_t(quats), as_t(log_scales)
-    for arg, t, k in (("centers", cn, 3), ("quats", qn, 4), ("log_scales", sn, 3)):
-        if tuple(t.shape) != (Bn, k):
-            raise ValueError(f"{name}(): {arg} must have shape ({Bn}, {k}) for {Bn} sources, got {tuple(t.shape)}")
-    if Bn == 0:
-        raise ValueError(f"{name}(): need at least one new bone")
-    for j, src in enumerate(sources):
-        if not src or any(not 0 <= int(i) < B_old for i, _ in src):
-            raise ValueError(f"{name}(): sources[{j}] must list old bones in [0, {B_old}), got {src}")
-        if abs(sum(float(w) for _, w in src) - 1.0) > 1e-6:
-            raise ValueError(f"{name}(): sources[{j}] weights must sum to 1, got {src}")
-    sources = [[(int(i), float(w)) for i, w in src] for src in sources]
-    with torch.no_grad():
-        c_old = model.bone_centers.detach()
-        aa_old, t_old = model.bone_aa.detach(), model.bone_t.detach()
-        aa_new = _mix(aa_old, 1, sources)
-        R_old = axis_angle_to_matrix(aa_old)  # (T, B, 3, 3)
-        R_new = axis_angle_to_matrix(aa_new)
-        t_cols = []
-        for j, src in enumerate(sources):
-            if len(src) == 1 and src[0][1] == 1.0:
-                i = src[0][0]
-                dc = c_old[i] - cn[j]
-                t_cols.append(t_old[:, i] + dc - (R_old[:, i] @ dc[:, None])[..., 0] if bool((dc != 0).any())
-                              else t_old[:, i].clone())
-                continue
-            acc = torch.zeros_like(t_old[:, 0])
-            Rmix = torch.zeros_like(R_old[:, 0])
-            for i, w in src:
-                dc = c_old[i] - cn[j]
-                acc = acc + w * (t_old[:, i] + dc - (R_old[:, i] @ dc[:, None])[..., 0])
-                Rmix = Rmix + w * R_old[:, i]
-            acc = acc + ((Rmix - R_new[:, j]) @ cn[j][:, None])[..., 0]
-            t_cols.append(acc)
-        t_new = torch.stack(t_cols, 1)
-    new_vals = {
-        "bone_centers": (cn.clone(), 0),
-        "bone_quat": (qn.clone(), 0),
-        "bone_log_scales": (sn.clone(), 0),
-        "bone_aa": (aa_new, 1),
-        "bone_t": (t_new, 1),
-    }
-    for attr, (val, dim) in new_vals.items():
-        old = getattr(model, attr)
-        new = torch.nn.Parameter(val.contiguous().clone(), requires_grad=old.requires_grad)
-        if optimizer is not None:
-            _move_state(optimizer, old, new, dim, sources, B_old)
-        setattr(model, attr, new)
-    log.info("remap_bones: %d -> %d bones", B_old, Bn)
-
-
-def _move_state(optimizer, old: torch.nn.Parameter, new: torch.nn.Parameter, dim: int, sources, B_old: int) -> None:
-    held = False
-    for g in optimizer.param_groups:
-        for k, p in enumerate(g["params"]):
-            if p is old:
-                g["params"][k] = new
-                held = True
-    if not held:
-        return
-    st = optimizer.state.pop(old, None)
-    if not st:
-        return
-    out = {}
-    for key, v in st.items():
-        if isinstance(v, torch.Tensor) and v.shape == old.shape and v.dim() > dim and v.shape[dim] == B_old:
-            out[key] = _mix(v, dim, sources).contiguous().clone()
-        else:
-            out[key] = v.clone() if isinstance(v, torch.Tensor) else v
-    optimizer.state[new] = out
-
-
-def apply_edit(model, optimizer, edit: SkeletonEdit) -> None:
-    """:func:`remap_bones` with an edit's bones; kept bones reuse their exact old quaternion and log-scales."""
-    dt = dict(dtype=model.bone_centers.dtype, device=model.bone_centers.device)
-    q, s = precision_to_quat_scales(edit.precisions)
-    centers = torch.as_tensor(edit.centers, **dt)
-    quats, scales = torch.as_tensor(q, **dt), torch.as_tensor(s, **dt)
-    for j, src in enumerate(edit.sources):
-        if edit.kept[j]:  # bit-exact copies, so an unchanged bone's skinning and optimiser step are unchanged
-            i = src[0][0]
-            centers[j] = model.bone_centers.detach()[i]
-            quats[j] = model.bone_quat.detach()[i]
-            scales[j] = model.bone_log_scales.detach()[i]
-    remap_bones(model, optimizer, edit.sources, centers, quats, scales)
-
-
 __all__ = [
     "DEFAULT_SHARPNESS",
     "SkeletonEdit",
-    "apply_edit",
-    "assign_parts",
-    "children_of",
+    "fit_bones_to_parts",
     "grow_skeleton",
     "merge_bones",
-    "part_extents",
     "precision_from_points",
     "precision_to_quat_scales",
     "prune_short_bones",
-    "remap_bones",
     "shift_bones",
-    "split_at_joints",
-    "tree_joints",
     "upsample_skeleton",
 ]

@@ -1,37 +1,66 @@
-"""The M-step of the fit (paper 3.4, Algorithm 1): adapt the skeleton to the current mesh and motion.
-
-Called by the fit between epochs of the joint phase. For epoch e (0-based, ``e1`` from the config):
-
-- e < e1: bone shifting (eq. 5) and skeleton growth at stretched end parts;
-- e == e1: one skeleton upsampling;
-- e > e1: physically constrained refinement: merge neighbouring bones whose flow-derived motion
-  directions agree in every frame (eq. 8, cosine > t_o), merge bones shorter than :data:`MIN_BONE_LENGTH`
-  into their parents (not in the paper), and split bones whose length varies over the frames (eq. 6
-  corrected) into two bones joined at a new joint, and (not in the paper) bones whose two halves move in a
-  way the one rigid bone does not reproduce (:func:`end_bone_bending`).
-
-The motion compared in eq. 8 is the flow between the two crops. Each merge step logs the similarity of every
-bone to its parent, the numbers t_o is compared with.
-
-After every edit the joints (bone pairs of the kinematic tree) are re-derived and placed at the mean of
-the vertices both bones weigh >= t_r. Per-frame motion and optimiser state are carried over by
-``skeleton.apply_edit`` so the loss does not jump.
-
-The thresholds a user sets are in ``SkeletonConfig`` (t_o, t_d, t_r, t_u, e1, max_bones); the tuning
-constants below are the M-step's own. Lengths and depths are fractions of the canonical mesh's bbox diagonal
-(:func:`s3o_warp.skeleton.measures.size_of`), flows crop pixels.
+"""The M-step schedule (paper 3.4, Algorithm 1) and its tuning constants: called by the fit after each epoch
+of the joint phase, it adapts the skeleton to the current mesh and motion. Before epoch ``e1`` it shifts the bones
+(eq. 5) and grows stretched end parts; at ``e1`` it upsamples the skeleton once; after ``e1`` comes the physically
+constrained refinement: merge neighbouring bones whose motion directions in the flow between the crops agree in
+every frame (eqs. 8-9, similarity > t_o; each merge step logs every bone's similarity to its parent), merge bones
+shorter than :data:`MIN_BONE_LENGTH` into their parents (not in the paper), and split in two, at a new joint, the
+bones whose length varies over the frames (eqs. 6-7, corrected) and (not in the paper) those whose two halves move
+in a way one rigid bone does not reproduce (:func:`end_bone_bending`). Every edit is applied with
+:func:`s3o_warp.skeleton.remap.apply_edit`, which carries motion and optimiser state over so that the loss does
+not jump, and the joints are then re-derived from the kinematic tree and placed by t_r (:func:`refresh_joints`).
+The thresholds a user sets are in ``SkeletonConfig`` (t_o, t_d, t_r, t_u, e1, max_bones); the constants below are
+the M-step's own, lengths and depths as fractions of the canonical mesh's bbox diagonal
+(:func:`s3o_warp.skeleton.measures.size_of`), flows in crop pixels. The LASR-like baseline's k-means bones
+(:func:`virtual_bones`), which replace the M-step, are set up here too.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from scipy.cluster.vq import kmeans2
 
-from s3o_warp.skeleton import measures as sk
+from s3o_warp.kernels.visibility import vertex_visibility
+from s3o_warp.motion.losses import vertex_flow_crop
+from s3o_warp.skeleton.edit import (
+    DEFAULT_SHARPNESS,
+    SkeletonEdit,
+    grow_skeleton,
+    merge_bones,
+    precision_to_quat_scales,
+    prune_short_bones,
+    shift_bones,
+    upsample_skeleton,
+)
+from s3o_warp.skeleton.joints import (
+    SurfaceSamples,
+    bone_endpoints,
+    bone_halves,
+    centre_in_body,
+    joint_positions,
+    parent_anchors,
+    split_at_joints,
+    surface_samples,
+)
+from s3o_warp.skeleton.measures import (
+    _check,
+    _np,
+    bone_flow,
+    bone_lengths,
+    bone_lengths_per_frame,
+    create_joints,
+    motion_similarity,
+    part_extents,
+    size_of,
+    tree_joints,
+    unexplained_motion,
+)
+from s3o_warp.skeleton.remap import apply_edit, remap_bones
 
 log = logging.getLogger(__name__)
 
@@ -114,30 +143,30 @@ def _q(model) -> np.ndarray:
     return model.precisions().detach().cpu().double().numpy()
 
 
-def joint_samples(model) -> sk.SurfaceSamples | None:
+def joint_samples(model) -> SurfaceSamples | None:
     """The points over the canonical surface the joints are taken over (:data:`JOINT_SAMPLES`), or None (the
     vertices)."""
-    return sk.surface_samples(model.verts.detach().cpu().double().numpy(), model.faces.detach().cpu().numpy(),
-                              model.bone_centers.detach().cpu().double().numpy(), _q(model), JOINT_SAMPLES)
+    return surface_samples(model.verts.detach().cpu().double().numpy(), model.faces.detach().cpu().numpy(),
+                           model.bone_centers.detach().cpu().double().numpy(), _q(model), JOINT_SAMPLES)
 
 
 def refresh_joints(model, state: SkeletonState, sc) -> None:
     """Joints = the kinematic tree's (parent, child) pairs, placed at the mean of the shared vertices
-    (``sc.t_r``), then moved into the body (:func:`s3o_warp.skeleton.measures.centre_in_body`; not in the paper): to the
+    (``sc.t_r``), then moved into the body (:func:`s3o_warp.skeleton.joints.centre_in_body`; not in the paper): to the
     middle of a thin limb's cross-section, at most :data:`JOINT_DEPTH` below the surface of a thick part (the mean
     sits on the surface when the shared vertices are on one side of a limb). ``sc`` is the run's
     ``SkeletonConfig``."""
     X, W = _xw(model)
-    state.joints = sk.tree_joints(state.parents)
+    state.joints = tree_joints(state.parents)
     if not len(state.joints):
         state.joint_positions = np.zeros((0, 3))
         return
-    J = sk.joint_positions(X, W, state.joints, t_r=sc.t_r, samples=joint_samples(model))
-    state.joint_positions = sk.centre_in_body(J, X, model.faces.detach().cpu().numpy(), max_depth=JOINT_DEPTH)
+    J = joint_positions(X, W, state.joints, t_r=sc.t_r, samples=joint_samples(model))
+    state.joint_positions = centre_in_body(J, X, model.faces.detach().cpu().numpy(), max_depth=JOINT_DEPTH)
 
 
 def prune_empty_bones(model, opt, state: SkeletonState, sc, epoch: int = -1) -> bool:
-    """Merge the bones that own no vertex into their parents (:func:`s3o_warp.skeleton.measures.prune_short_bones` with
+    """Merge the bones that own no vertex into their parents (:func:`s3o_warp.skeleton.edit.prune_short_bones` with
     no length limit), carrying motion and optimiser state over; the fit's last step, not in the paper: such a bone
     moves nothing, and its joints fall back to far-apart borders (a leg's top joint at the tail's base).
     ``epoch`` only labels the history entry and the log line (-1: after the last epoch). Returns whether the
@@ -148,20 +177,20 @@ def prune_empty_bones(model, opt, state: SkeletonState, sc, epoch: int = -1) -> 
 
 
 def _prune_edit(model, state: SkeletonState, sc, min_length: float):
-    """:func:`s3o_warp.skeleton.measures.prune_short_bones` on the model's canonical bone lengths; ``min_length`` a fraction
+    """:func:`s3o_warp.skeleton.edit.prune_short_bones` on the model's canonical bone lengths; ``min_length`` a fraction
     of the mesh's size."""
     X, W = _xw(model)
     C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
-    L = sk.bone_lengths(sk.bone_endpoints(X, W, state.joints, t_r=sc.t_r, far_fraction=FAR_FRACTION,
-                                          samples=joint_samples(model)), X)
-    return sk.prune_short_bones(L, min_length * sk.size_of(X), W, C, Q, state.parents, extents=state.extents)
+    L = bone_lengths(bone_endpoints(X, W, state.joints, t_r=sc.t_r, far_fraction=FAR_FRACTION,
+                                    samples=joint_samples(model)), X)
+    return prune_short_bones(L, min_length * size_of(X), W, C, Q, state.parents, extents=state.extents)
 
 
 def _apply(model, opt, state: SkeletonState, edit, what: str, epoch: int, sc) -> bool:
     if not edit.changed:
         return False
     b0 = model.num_bones
-    sk.apply_edit(model, opt, edit)
+    apply_edit(model, opt, edit)
     state.parents = np.asarray(edit.parents, np.int64)
     if edit.extents is not None:
         state.extents = np.asarray(edit.extents, np.float64)
@@ -192,8 +221,6 @@ def _pair_windows(model, T: int, batch_frames: int):
 def bone_motion_similarity(model, data, cfg) -> tuple[np.ndarray, np.ndarray]:
     """Eq. 4 + 8: per-bone flow over all frames (visible vertices only), min-over-frames cosine ``(B, B)``,
     and the ``(B, B)`` counts of frames each pair was compared on (:func:`s3o_warp.skeleton.measures.motion_similarity`)."""
-    from s3o_warp.kernels.visibility import vertex_visibility
-
     sc = cfg.skeleton
     W = model.skinning()
     FB, valid = [], []
@@ -201,13 +228,13 @@ def bone_motion_similarity(model, data, cfg) -> tuple[np.ndarray, np.ndarray]:
         v = model(fr, weights=W)
         K = model.intrinsics_crop(fr)
         vis = vertex_visibility(v, model.faces)
-        fb, ok = sk.bone_flow(v, K, data.flow_fwd[fr[:-1]], vis, W, conf=data.conf_fwd[fr[:-1]],
-                              min_visible=MIN_VISIBLE, min_mass=MIN_MASS)
+        fb, ok = bone_flow(v, K, data.flow_fwd[fr[:-1]], vis, W, conf=data.conf_fwd[fr[:-1]],
+                           min_visible=MIN_VISIBLE, min_mass=MIN_MASS)
         FB.append(fb)
         valid.append(ok)
     FB = torch.cat(FB, 0)
     valid = torch.cat(valid, 0)
-    S, N = sk.motion_similarity(FB, valid, min_flow=MIN_FLOW, min_frames=MIN_FRAMES, return_frames=True)
+    S, N = motion_similarity(FB, valid, min_flow=MIN_FLOW, min_frames=MIN_FRAMES, return_frames=True)
     return S.cpu().double().numpy(), N.cpu().numpy()
 
 
@@ -216,14 +243,14 @@ def bone_length_variation(model, data, state: SkeletonState, cfg) -> tuple[np.nd
     """Which bones' lengths vary over frames (eq. 6 corrected), ``(B,)`` bool, and the endpoints used."""
     sc = cfg.skeleton
     X, W = _xw(model)
-    E = sk.bone_endpoints(X, W, state.joints, t_r=sc.t_r, far_fraction=FAR_FRACTION,
-                          samples=joint_samples(model))
+    E = bone_endpoints(X, W, state.joints, t_r=sc.t_r, far_fraction=FAR_FRACTION,
+                       samples=joint_samples(model))
     lengths = []
     Wt = model.skinning()
     for s in range(0, data.num_frames, cfg.motion.batch_frames):
         fr = torch.arange(s, min(s + cfg.motion.batch_frames, data.num_frames), device=model.verts.device)
-        lengths.append(sk.bone_lengths_per_frame(E, model.posed_object(fr, weights=Wt).cpu().double().numpy()))
-    return sk.create_joints(np.concatenate(lengths, 0), t_d=sc.t_d, min_length=MIN_BONE_LENGTH * sk.size_of(X)), E
+        lengths.append(bone_lengths_per_frame(E, model.posed_object(fr, weights=Wt).cpu().double().numpy()))
+    return create_joints(np.concatenate(lengths, 0), t_d=sc.t_d, min_length=MIN_BONE_LENGTH * size_of(X)), E
 
 
 @torch.no_grad()
@@ -237,9 +264,6 @@ def end_bone_bending(model, data, state: SkeletonState, E: np.ndarray, cfg) -> n
     rigid bone cannot move as the video does. An inner bone's halves are cut half way between its two farthest
     joints (eq. 6's ends).
     """
-    from s3o_warp.kernels.visibility import vertex_visibility
-    from s3o_warp.motion.losses import vertex_flow_crop
-
     sc = cfg.skeleton
     X, W = _xw(model)
     B = W.shape[1]
@@ -247,11 +271,11 @@ def end_bone_bending(model, data, state: SkeletonState, E: np.ndarray, cfg) -> n
     if not len(state.joints):
         return out
     count = np.bincount(np.asarray(state.joints).ravel(), minlength=B)
-    ends = (count >= 1) & (sk.bone_lengths(E, X) >= 2.0 * MIN_BONE_LENGTH * sk.size_of(X))
+    ends = (count >= 1) & (bone_lengths(E, X) >= 2.0 * MIN_BONE_LENGTH * size_of(X))
     if not ends.any():
         return out
     C = model.bone_centers.detach().cpu().double().numpy()
-    bones, W2 = sk.bone_halves(X, W, C, state.parents, E, ends, min_section_vertices=MIN_SECTION_VERTICES)
+    bones, W2 = bone_halves(X, W, C, state.parents, E, ends, min_section_vertices=MIN_SECTION_VERTICES)
     if not len(bones):
         return out
     W2 = torch.as_tensor(W2, dtype=torch.float32, device=model.verts.device)
@@ -260,15 +284,15 @@ def end_bone_bending(model, data, state: SkeletonState, E: np.ndarray, cfg) -> n
     for fr in _pair_windows(model, data.num_frames, cfg.motion.batch_frames):
         v = model(fr, weights=Wt)
         K = model.intrinsics_crop(fr)
-        fb, ok, gb = sk.bone_flow(v, K, data.flow_fwd[fr[:-1]], vertex_visibility(v, model.faces), W2,
-                                  conf=data.conf_fwd[fr[:-1]], min_visible=MIN_VISIBLE, min_mass=MIN_MASS,
-                                  predicted=vertex_flow_crop(v, K))
+        fb, ok, gb = bone_flow(v, K, data.flow_fwd[fr[:-1]], vertex_visibility(v, model.faces), W2,
+                               conf=data.conf_fwd[fr[:-1]], min_visible=MIN_VISIBLE, min_mass=MIN_MASS,
+                               predicted=vertex_flow_crop(v, K))
         FB.append(fb)
         GB.append(gb)
         valid.append(ok)
-    r, n = sk.unexplained_motion(torch.cat(FB), torch.cat(GB), torch.cat(valid),
-                                 np.arange(2 * len(bones)).reshape(-1, 2), min_flow=MIN_FLOW,
-                                 min_frames=merge_min_frames(data.num_frames))
+    r, n = unexplained_motion(torch.cat(FB), torch.cat(GB), torch.cat(valid),
+                              np.arange(2 * len(bones)).reshape(-1, 2), min_flow=MIN_FLOW,
+                              min_frames=merge_min_frames(data.num_frames))
     out[bones] = r
     log.info("M-step: unexplained motion of the bones' halves: %s (t_u %.3g)",
              " ".join(f"{b}:{x:.3f}/{k}" for b, x, k in zip(bones.tolist(), r, n.tolist())), sc.t_u)
@@ -285,26 +309,26 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int) -> bool:
     C = model.bone_centers.detach().cpu().double().numpy()
     Q = _q(model)
     if state.extents is None:
-        state.extents = sk.part_extents(X, W)
+        state.extents = part_extents(X, W)
     if epoch < sc.e1:
         # bone shifting (eq. 5): centres to their parts' centroids, motion carried over exactly
-        C2 = sk.shift_bones(X, W, C)
+        C2 = shift_bones(X, W, C)
         if np.abs(C2 - C).max() > 1e-9:
-            edit = sk.SkeletonEdit(centers=C2, precisions=Q, parents=state.parents.copy(),
-                                   sources=[[(b, 1.0)] for b in range(len(C))],
-                                   kept=np.zeros(len(C), bool), extents=state.extents)
+            edit = SkeletonEdit(centers=C2, precisions=Q, parents=state.parents.copy(),
+                                sources=[[(b, 1.0)] for b in range(len(C))],
+                                kept=np.zeros(len(C), bool), extents=state.extents)
             changed |= _apply(model, opt, state, edit, "shift", epoch, sc)
             X, W = _xw(model)
             C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
-        anchors = sk.parent_anchors(state.parents, state.joints, state.joint_positions) if len(state.joints) else None
-        edit = sk.grow_skeleton(X, W, C, Q, state.parents, state.extents, growth_factor=GROWTH_FACTOR,
-                                sections=GROWTH_SECTIONS, anchors=anchors, sharpness=SHARPNESS,
-                                min_section_vertices=MIN_SECTION_VERTICES)
+        anchors = parent_anchors(state.parents, state.joints, state.joint_positions) if len(state.joints) else None
+        edit = grow_skeleton(X, W, C, Q, state.parents, state.extents, growth_factor=GROWTH_FACTOR,
+                             sections=GROWTH_SECTIONS, anchors=anchors, sharpness=SHARPNESS,
+                             min_section_vertices=MIN_SECTION_VERTICES)
         if model.num_bones + (edit.num_bones - model.num_bones) <= sc.max_bones:
             changed |= _apply(model, opt, state, edit, "grow", epoch, sc)
     elif epoch == sc.e1:
-        edit = sk.upsample_skeleton(X, W, C, Q, state.parents, sharpness=SHARPNESS, extents=state.extents,
-                                    min_section_vertices=MIN_SECTION_VERTICES)
+        edit = upsample_skeleton(X, W, C, Q, state.parents, sharpness=SHARPNESS, extents=state.extents,
+                                 min_section_vertices=MIN_SECTION_VERTICES)
         if edit.num_bones <= sc.max_bones:
             changed |= _apply(model, opt, state, edit, "upsample", epoch, sc)
     else:
@@ -327,8 +351,8 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int) -> bool:
             log.info("M-step epoch %d: motion similarity of the %d parent-child pairs: %s (%d finite), %d above t_o %.3g",
                      epoch, len(kid), " ".join(f"{x:.3f}" for x in np.sort(fin)[::-1]), len(fin),
                      int((fin > sc.t_o).sum()), sc.t_o)
-        edit = sk.merge_bones(S, W, C, Q, state.parents, t_o=sc.t_o, temperature=MERGE_TEMPERATURE,
-                              extents=state.extents)
+        edit = merge_bones(S, W, C, Q, state.parents, t_o=sc.t_o, temperature=MERGE_TEMPERATURE,
+                           extents=state.extents)
         changed |= _apply(model, opt, state, edit, "merge", epoch, sc)
         if MIN_BONE_LENGTH > 0 and len(state.joints):
             changed |= _apply(model, opt, state, _prune_edit(model, state, sc, MIN_BONE_LENGTH), "prune", epoch, sc)
@@ -342,8 +366,8 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int) -> bool:
             if split.any() and model.num_bones + int(split.sum()) <= sc.max_bones:
                 X, W = _xw(model)
                 C, Q = model.bone_centers.detach().cpu().double().numpy(), _q(model)
-                edit = sk.split_at_joints(X, W, C, Q, state.parents, E, split, sharpness=SHARPNESS,
-                                          extents=state.extents, min_section_vertices=MIN_SECTION_VERTICES)
+                edit = split_at_joints(X, W, C, Q, state.parents, E, split, sharpness=SHARPNESS,
+                                       extents=state.extents, min_section_vertices=MIN_SECTION_VERTICES)
                 changed |= _apply(model, opt, state, edit, "joint", epoch, sc)
     if not changed:
         state.history.append({"epoch": epoch, "operation": "none", "bones_before": model.num_bones,
@@ -351,16 +375,51 @@ def m_step(model, opt, data, cfg, state: SkeletonState, epoch: int) -> bool:
     return changed
 
 
+def virtual_bones(verts, num_bones: int, seed: int = 0, sharpness: float = DEFAULT_SHARPNESS,
+                  iterations: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """Virtual bones (LASR baseline): k-means centres over the surface, isotropic precisions.
+
+    ``scipy.cluster.vq.kmeans2`` (k-means++ init, ``seed``-ed generator); each bone's precision is
+    ``Q = sharpness / sigma^2 I`` with ``sigma^2`` the mean per-axis squared distance of its cluster
+    (the vertices nearest the final centre) from the centre; clusters of fewer than 2 vertices get the
+    mean over the other clusters.
+
+    Args:
+        verts: ``(N, 3)`` canonical vertices.
+        num_bones: B (at most N).
+        seed: random seed; the same seed gives the same bones.
+        sharpness: precision scale.
+        iterations: k-means iterations.
+
+    Returns:
+        ``centers`` ``(B, 3)`` and ``precisions`` ``(B, 3, 3)``, float64.
+    """
+    X = _np(verts)
+    _check("virtual_bones", "verts", X, (None, 3))
+    if not 1 <= num_bones <= len(X):
+        raise ValueError(f"virtual_bones(): num_bones must be in [1, {len(X)}], got {num_bones}")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # scipy warns about empty clusters; handled below
+        cen, _ = kmeans2(X, num_bones, iter=iterations, minit="++", seed=np.random.default_rng(seed))
+    lab = np.argmin(((X[:, None] - cen[None]) ** 2).sum(-1), 1)  # clusters of the final centres
+    var = np.full(num_bones, np.nan)
+    for b in range(num_bones):
+        p = X[lab == b]
+        if len(p) >= 2:
+            var[b] = ((p - cen[b]) ** 2).sum(1).mean() / 3
+    fill = np.nanmean(var) if np.isfinite(var).any() else 1.0
+    var = np.where(np.isfinite(var) & (var > 1e-12), var, fill)
+    return cen.astype(np.float64), np.eye(3)[None] * (sharpness / var)[:, None, None]
+
+
 def virtual_bones_init(model, cfg) -> np.ndarray:
     """The LASR-like baseline: k-means bones over the canonical surface, a flat tree (all children of bone 0)."""
-    from s3o_warp.skeleton.measures import precision_to_quat_scales
-
     X = model.verts.detach().cpu().double().numpy()
-    C, Q = sk.virtual_bones(X, cfg.skeleton.virtual_bones, seed=cfg.seed)
+    C, Q = virtual_bones(X, cfg.skeleton.virtual_bones, seed=cfg.seed)
     q, s = precision_to_quat_scales(Q)
     dt = dict(dtype=model.bone_centers.dtype, device=model.bone_centers.device)
-    sk.remap_bones(model, None, [[(0, 1.0)] for _ in range(len(C))], torch.as_tensor(C, **dt),
-                   torch.as_tensor(q, **dt), torch.as_tensor(s, **dt))
+    remap_bones(model, None, [[(0, 1.0)] for _ in range(len(C))], torch.as_tensor(C, **dt),
+                torch.as_tensor(q, **dt), torch.as_tensor(s, **dt))
     parents = np.zeros(len(C), np.int64)
     parents[0] = -1
     return parents
