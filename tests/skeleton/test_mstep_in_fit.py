@@ -64,7 +64,7 @@ def test_min_section_vertices_stops_the_m_steps_splits(tiny_sequence, tmp_path, 
 def test_joint_samples_reach_the_joints_and_the_m_step(tiny_sequence, tmp_path, monkeypatch):
     """The joints are taken over the surface samples (each face's 4 x 4 grid, mstep.JOINT_SAMPLES), not over the
     vertices (1, the paper), and the M-step's lengths and joint creation run on them."""
-    from s3o_warp.skeleton import measures as sk
+    from s3o_warp.skeleton import joints as skj
     from s3o_warp.skeleton import mstep
     from s3o_warp.skeleton.mstep import bone_length_variation, m_step, refresh_joints
 
@@ -73,16 +73,16 @@ def test_joint_samples_reach_the_joints_and_the_m_step(tiny_sequence, tmp_path, 
     assert m_step(f.model, f.opt, data, cfg, f.skel, sc.e1) and len(f.skel.joints)
     J4 = f.skel.joint_positions.copy()
     X, W = f.model.verts.detach().double().numpy(), f.model.skinning().detach().double().numpy()
-    s = sk.surface_samples(X, f.model.faces.numpy(), f.model.bone_centers.detach().double().numpy(),
+    s = skj.surface_samples(X, f.model.faces.numpy(), f.model.bone_centers.detach().double().numpy(),
                            f.model.precisions().detach().double().numpy(), 4)
-    J = sk.joint_positions(X, W, f.skel.joints, t_r=sc.t_r, samples=s)
-    np.testing.assert_allclose(J4, sk.centre_in_body(J, X, f.model.faces.numpy(), max_depth=mstep.JOINT_DEPTH))
+    J = skj.joint_positions(X, W, f.skel.joints, t_r=sc.t_r, samples=s)
+    np.testing.assert_allclose(J4, skj.centre_in_body(J, X, f.model.faces.numpy(), max_depth=mstep.JOINT_DEPTH))
     monkeypatch.setattr(mstep, "JOINT_SAMPLES", 1)
     refresh_joints(f.model, f.skel, sc)
     assert not np.allclose(f.skel.joint_positions, J4)
     monkeypatch.undo()
     split, E = bone_length_variation(f.model, data, f.skel, cfg)
-    np.testing.assert_allclose(E, sk.bone_endpoints(X, W, f.skel.joints, t_r=sc.t_r, far_fraction=mstep.FAR_FRACTION,
+    np.testing.assert_allclose(E, skj.bone_endpoints(X, W, f.skel.joints, t_r=sc.t_r, far_fraction=mstep.FAR_FRACTION,
                                                     samples=s))
     sc.t_o, sc.t_d = 2.0, 0.0  # every bone qualifies for a joint
     monkeypatch.setattr(mstep, "MIN_BONE_LENGTH", 0.0)
@@ -123,6 +123,7 @@ def test_m_step_splits_bones_that_bend_and_keeps_the_loss(tiny_sequence, tmp_pat
 def test_m_step_prunes_short_bones_and_keeps_the_loss(tiny_sequence, tmp_path, monkeypatch):
     """After e1 the M-step merges bones shorter than mstep.MIN_BONE_LENGTH into their parents; the
     posed mesh and the loss barely move (the short bone's few vertices follow its parent)."""
+    from s3o_warp.skeleton import joints as skj
     from s3o_warp.skeleton import measures as sk
     from s3o_warp.skeleton import mstep
     from s3o_warp.skeleton.mstep import joint_samples, m_step
@@ -130,7 +131,7 @@ def test_m_step_prunes_short_bones_and_keeps_the_loss(tiny_sequence, tmp_path, m
     cfg, data, f, frames = joint_fitter(tiny_sequence, tmp_path)
     cfg.skeleton.t_o, cfg.skeleton.t_d, cfg.skeleton.t_u = 2.0, 1e9, float("inf")  # no merge, no joint: pruning only
     X, W = f.model.verts.detach().double().numpy(), f.model.skinning().detach().double().numpy()
-    E = sk.bone_endpoints(X, W, f.skel.joints, t_r=cfg.skeleton.t_r, samples=joint_samples(f.model))
+    E = skj.bone_endpoints(X, W, f.skel.joints, t_r=cfg.skeleton.t_r, samples=joint_samples(f.model))
     L = sk.bone_lengths(E, X) / sk.size_of(X)
     inner = np.flatnonzero(np.bincount(f.skel.parents[f.skel.parents >= 0], minlength=len(L)) > 0)
     monkeypatch.setattr(mstep, "MIN_BONE_LENGTH", float(L[inner].min() * 1.001))  # the shortest inner bone is short
