@@ -221,7 +221,6 @@ def _pair_windows(model, T: int, batch_frames: int):
 def bone_motion_similarity(model, data, cfg) -> tuple[np.ndarray, np.ndarray]:
     """Eq. 4 + 8: per-bone flow over all frames (visible vertices only), min-over-frames cosine ``(B, B)``,
     and the ``(B, B)`` counts of frames each pair was compared on (:func:`s3o_warp.skeleton.measures.motion_similarity`)."""
-    sc = cfg.skeleton
     W = model.skinning()
     FB, valid = [], []
     for fr in _pair_windows(model, data.num_frames, cfg.motion.batch_frames):
