@@ -25,6 +25,8 @@ from typing import Literal, Sequence
 import numpy as np
 import torch
 
+from s3o_warp.geometry import to_numpy as _np
+
 log = logging.getLogger(__name__)
 
 DEFAULT_SHARPNESS = 2.0 / 3.0
@@ -34,12 +36,6 @@ DEFAULT_SHARPNESS = 2.0 / 3.0
 # ---------------------------------------------------------------------------------------------------
 # small helpers
 # ---------------------------------------------------------------------------------------------------
-
-
-def _np(x, dtype=np.float64) -> np.ndarray:
-    if isinstance(x, torch.Tensor):
-        x = x.detach().cpu().numpy()
-    return np.asarray(x, dtype=dtype)
 
 
 def _check(name: str, arg: str, a: np.ndarray, shape: tuple) -> None:
