@@ -1,4 +1,5 @@
-"""Small differentiable rotation and projection helpers (torch), shared by the model and the fit.
+"""Small differentiable rotation and projection helpers (torch), shared by the model and the fit, and the numpy
+projection (:func:`project_np`) and tensor-to-array conversion (:func:`to_numpy`) that the rest of the package uses.
 
 Conventions: OpenCV camera (+x right, +y down, +z forward); a 3x4 ``[R|t]`` maps x -> R x + t;
 intrinsics K are 3x3 pixel matrices with the centre of pixel (c, r) at (c, r).
@@ -8,6 +9,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 
@@ -98,6 +100,20 @@ def project(verts: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     u = fx * xy[..., 0] + skew * xy[..., 1] + cx
     v = fy * xy[..., 1] + cy
     return torch.stack([u, v], -1)
+
+
+def project_np(points: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pinhole projection in numpy: ``(..., 3)`` camera-space points, K ``(..., 3, 3)`` broadcastable against them ->
+    ``(..., 2)`` pixels (x = column, y = row); the homogeneous divide by ``K @ p``'s third entry, no clamping."""
+    p = np.einsum("...ij,...j->...i", K, points)
+    return p[..., :2] / p[..., 2:3]
+
+
+def to_numpy(x, dtype=np.float64) -> np.ndarray:
+    """A tensor (detached, copied to the CPU) or anything array-like as a numpy array of ``dtype``."""
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x, dtype=dtype)
 
 
 def rt_to_homogeneous(rt: torch.Tensor) -> torch.Tensor:

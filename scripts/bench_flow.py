@@ -5,7 +5,7 @@
                                  [--presets medium] [--crop-size S] [--out-dir DIR]
 
 The true flow comes from the sequence's ``ground_truth/``: each foreground pixel of frame t is a point on a
-face (z-buffer render of the true mesh, :func:`s3o_warp.evaluation.metrics.render_frames`); the same barycentric point
+face (z-buffer render of the true mesh, :func:`s3o_warp.evaluation.image.render_frames`); the same barycentric point
 on the face at t+1, projected, is where it goes. The measured flow is what a fit uses: the crop flow of
 :func:`s3o_warp.data.flow.pair_flow` (DIS on the pair's canvas), taken back to frame pixels. Per pair and
 setting: ``ratio``, the median over foreground crop pixels of (measured . true) / |true|^2 (1 = the full
@@ -27,6 +27,13 @@ from pathlib import Path
 
 import numpy as np
 
+from s3o_warp.config import DataConfig, make_config
+from s3o_warp.data.flow import FLOW_FB_SIGMA, make_dis, pair_flow
+from s3o_warp.data.io import write_json
+from s3o_warp.data.sequence import map_points, open_sequence
+from s3o_warp.evaluation.image import render_frames
+from s3o_warp.evaluation.loaders import load_ground_truth
+from s3o_warp.geometry import project_np
 from s3o_warp.provenance import REPO, cpu_name, git_commit, versions
 
 
@@ -39,8 +46,6 @@ def _bench_fit():
 
 def true_frame_flow(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, size: tuple[int, int]):
     """Per frame t < T-1: ``(H, W, 2)`` true flow t -> t+1 in frame pixels and ``(H, W)`` foreground."""
-    from s3o_warp.evaluation.metrics import project, render_frames
-
     out = []
     for start, fi, bary in render_frames(verts[:-1], faces, K[:-1], size, progress=False):
         for k in range(fi.shape[0]):
@@ -48,8 +53,8 @@ def true_frame_flow(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, size: t
             fg = fi[k] >= 0
             tri = faces[fi[k][fg]]  # (P, 3) vertex indices
             b = bary[k][fg][..., None]
-            x0 = project((verts[t][tri] * b).sum(1), K[t])
-            x1 = project((verts[t + 1][tri] * b).sum(1), K[t + 1])
+            x0 = project_np((verts[t][tri] * b).sum(1), K[t])
+            x1 = project_np((verts[t + 1][tri] * b).sum(1), K[t + 1])
             flow = np.zeros(size + (2,), np.float64)
             flow[fg] = x1 - x0
             out.append((flow, fg))
@@ -58,10 +63,6 @@ def true_frame_flow(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, size: t
 
 def measure(seq_dir: Path, preset: str, finest_scale: int | None, crop_size: int, truth) -> dict:
     """Ratio and end-point error of the crop flow against ``truth`` (from :func:`true_frame_flow`)."""
-    from s3o_warp.config import DataConfig
-    from s3o_warp.data.sequence import map_points, open_sequence
-    from s3o_warp.data.flow import FLOW_FB_SIGMA, make_dis, pair_flow
-
     cfg = DataConfig(crop_size=crop_size, flow_preset=preset)
     seq = open_sequence(seq_dir, cfg=cfg)
     dis = make_dis(preset, finest_scale)
@@ -102,9 +103,6 @@ def main(argv=None) -> int:
     ap.add_argument("--out-dir", default=str(REPO / "runs" / "bench"), help="where sequences are rendered (bench_fit.py's)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
-    from s3o_warp.config import make_config
-    from s3o_warp.evaluation.metrics import load_ground_truth, write_json
-
     if args.crop_size is None:
         args.crop_size = make_config("default").data.crop_size
 
@@ -129,7 +127,7 @@ def main(argv=None) -> int:
                        **measure(seq, preset, finest, args.crop_size, truth)}
                 print(json.dumps(res), flush=True)
                 doc["results"].append(res)
-    write_json(doc, dest)
+    write_json(dest, doc, indent=1)
     print(f"wrote {dest}")
     return 0
 

@@ -5,7 +5,7 @@ Usage:
         [--ground-truth DIR] [--masks DIR] [--out metrics.json]
 
 Prints a table and writes ``metrics.json`` (atomically) into the run directory, or to ``--out``.
-The logic is ``s3o_warp.evaluation.metrics.evaluate_run``; BADJA files convert with ``python -m s3o_warp.data.keypoints``.
+The logic is ``s3o_warp.evaluation.report.evaluate_run``; BADJA files convert with ``python -m s3o_warp.data.keypoints``.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 from s3o_warp.errors import InputError
-from s3o_warp.evaluation.metrics import evaluate_run, format_table, write_metrics
+from s3o_warp.evaluation.report import evaluate_run, format_table, write_metrics
 
 
 def main(argv=None) -> int:

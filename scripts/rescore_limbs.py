@@ -4,7 +4,7 @@
 
     python scripts/rescore_limbs.py RUN_DIR:SEQUENCE_DIR [RUN_DIR:SEQUENCE_DIR ...] [--out FILE]
 
-Each run is evaluated as ``scripts/evaluate.py`` would (:func:`s3o_warp.evaluation.metrics.evaluate_run`, written to
+Each run is evaluated as ``scripts/evaluate.py`` would (:func:`s3o_warp.evaluation.report.evaluate_run`, written to
 ``RUN_DIR/metrics-rescored.json``, the run's own ``metrics.json`` left as it is). One row per run goes to
 ``--out`` (default ``benchmarks/limbs-rescore-cpu.json``) with the command, the machine and the versions: per
 limb count (``limbs``, ``limbs_distinct``, ``limbs_framewise``) the covered limbs and each limb's ``tol_needed``,
@@ -20,8 +20,9 @@ import os
 import sys
 from pathlib import Path
 
+from s3o_warp.data.io import read_json, write_json
 from s3o_warp.errors import InputError
-from s3o_warp.evaluation.metrics import evaluate_run, read_json, write_json, write_metrics
+from s3o_warp.evaluation.report import evaluate_run, write_metrics
 from s3o_warp.provenance import REPO, cpu_name, git_commit, versions
 
 COUNTS = ("limbs", "limbs_distinct", "limbs_framewise")
@@ -63,9 +64,9 @@ def main(argv=None) -> int:
                      "before": summary(before), "now": summary(now)})
         print(json.dumps({"run": str(run), **{k: f"{v['covered']}/{v['total']}" for k, v in summary(now).items()}}),
               flush=True)
-    write_json({"command": " ".join(["python"] + sys.argv), "device": "cpu", "device_name": cpu_name(),
-                "cpu_count": os.cpu_count(), "versions": versions(), "git_commit": git_commit(), "results": rows},
-               args.out)
+    write_json(args.out, {"command": " ".join(["python"] + sys.argv), "device": "cpu", "device_name": cpu_name(),
+                          "cpu_count": os.cpu_count(), "versions": versions(), "git_commit": git_commit(),
+                          "results": rows}, indent=1)
     print(f"wrote {args.out}")
     return 0
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from s3o_warp.coarse.skeleton2d import ENDPOINT, CoarseSettings, Skeleton2D, symmetric_pairs
 from s3o_warp.errors import InputError
+from s3o_warp.geometry import project_np
 
 log = logging.getLogger(__name__)
 
@@ -78,8 +79,7 @@ class Coarse3D:
     def project(self, points: np.ndarray) -> np.ndarray:
         """(M, 3) object-frame points -> (M, 2) float64 pixels (x, y) in the canonical frame."""
         cam = points @ self.root_transform[:3, :3].T + self.root_transform[:3, 3]
-        uvw = cam @ self.K.T
-        return uvw[:, :2] / uvw[:, 2:3]
+        return project_np(cam, self.K)
 
 
 @dataclass

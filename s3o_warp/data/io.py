@@ -1,5 +1,6 @@
 """Atomic file output: every file of a run is written to a temporary name beside it, then renamed onto it, so a
-crash or a stop never leaves a half-written file where a finished one is expected."""
+crash or a stop never leaves a half-written file where a finished one is expected; and the JSON reader whose
+errors name the file and the fix (:func:`read_json`)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,8 @@ import os
 from pathlib import Path
 
 import torch
+
+from s3o_warp.errors import InputError
 
 
 @contextlib.contextmanager
@@ -41,8 +44,21 @@ def write_text(path, text: str) -> Path:
 
 
 def write_json(path, obj, indent: int | None = 2) -> Path:
-    """``path`` holds ``obj`` as JSON, written atomically."""
+    """``path`` holds ``obj`` as JSON, written atomically; its folder is made when missing."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     return write_text(path, json.dumps(obj, indent=indent) + "\n")
+
+
+def read_json(path, what: str, fix: str):
+    """Parse a JSON file; a missing or malformed file raises a one-line ``InputError`` with ``fix``."""
+    path = Path(path)
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except FileNotFoundError:
+        raise InputError(f"{path}: {what} not found; {fix}") from None
+    except json.JSONDecodeError as e:
+        raise InputError(f"{path}: not valid JSON ({e.msg} at line {e.lineno}); {fix}") from None
 
 
 def copy_file(src, dst) -> Path:

@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from s3o_warp.data.io import read_json, write_json
 from s3o_warp.errors import InputError
-from s3o_warp.evaluation.metrics import read_json, write_json
 
 log = logging.getLogger(__name__)
 
@@ -128,7 +128,7 @@ def badja_to_keypoints(
 
 def write_keypoints(keypoints: dict, path) -> Path:
     """Write a keypoints dictionary as JSON to ``path`` atomically (temporary file, then rename)."""
-    return write_json(keypoints, path)
+    return write_json(path, keypoints, indent=1)
 
 
 def frame_size_of(frames_dir) -> tuple[int, int]:

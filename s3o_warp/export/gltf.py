@@ -28,6 +28,7 @@ import numpy as np
 from s3o_warp.errors import InputError
 from s3o_warp.export.rig import Rig, atomic_path, decompose_rigid, top_k_error, top_k_weights
 from s3o_warp.export.usd import ExportReport
+from s3o_warp.geometry import project_np
 
 logger = logging.getLogger(__name__)
 
@@ -75,8 +76,7 @@ def gltf_camera_error(rig: Rig, focal: float, cam: np.ndarray | None = None) -> 
     cam = rig.posed_camera() if cam is None else cam
     k = np.array([[focal, 0, w / 2 - 0.5], [0, focal, h / 2 - 0.5], [0, 0, 1.0]])
     exact = rig.project(cam)
-    uvw = cam @ k.T
-    ideal = uvw[..., :2] / uvw[..., 2:3]
+    ideal = project_np(cam, k)
     return float(np.linalg.norm(ideal - exact, axis=-1).max())
 
 

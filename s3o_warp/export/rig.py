@@ -36,6 +36,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from s3o_warp.errors import InputError
+from s3o_warp.geometry import project_np
 
 logger = logging.getLogger(__name__)
 
@@ -285,8 +286,7 @@ class Rig:
             cam: optional (T, N, 3) camera-frame points; defaults to :meth:`posed_camera`.
         """
         cam = self.posed_camera() if cam is None else cam
-        uvw = np.einsum("tij,tnj->tni", self.K, cam)
-        return uvw[..., :2] / uvw[..., 2:3]
+        return project_np(cam, self.K[:, None])
 
     def joints_camera(self) -> np.ndarray | None:
         """(T, J, 3) float64 posed joints in the OpenCV camera frame, or None without joints.

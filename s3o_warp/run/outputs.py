@@ -5,19 +5,17 @@ Every file is written to a temporary name and renamed (the writers used here all
 
 from __future__ import annotations
 
-import json
 import logging
-import os
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from s3o_warp.data.io import write_json
+from s3o_warp.evaluation.report import evaluate_run
+from s3o_warp.geometry import to_numpy
+
 log = logging.getLogger(__name__)
-
-
-def _np(x: torch.Tensor) -> np.ndarray:
-    return x.detach().cpu().double().numpy()
 
 
 def _h(rt: np.ndarray) -> np.ndarray:
@@ -39,9 +37,9 @@ def rig_from_model(fitter):
     W = m.skinning()
     V = quat_to_matrix(m.bone_quat)  # rows = axes
     bind = np.tile(np.eye(4), (B, 1, 1))
-    bind[:, :3, :3] = _np(V.transpose(-1, -2))
-    bind[:, :3, 3] = _np(m.bone_centers)
-    precisions = _np(m.precisions())
+    bind[:, :3, :3] = to_numpy(V.transpose(-1, -2))
+    bind[:, :3, 3] = to_numpy(m.bone_centers)
+    precisions = to_numpy(m.precisions())
     joints, pairs = None, None
     sk = fitter.skel
     if len(sk.joints):
@@ -53,25 +51,25 @@ def rig_from_model(fitter):
         from s3o_warp.skeleton.measures import bone_lengths
         from s3o_warp.skeleton.mstep import joint_samples
 
-        X, Wn = _np(m.verts), _np(W)
+        X, Wn = to_numpy(m.verts), to_numpy(W)
         lengths = bone_lengths(bone_endpoints(X, Wn, pairs, t_r=fitter.cfg.skeleton.t_r, samples=joint_samples(m)), X)
     return Rig(
-        verts=_np(m.verts).astype(np.float32),
+        verts=to_numpy(m.verts).astype(np.float32),
         faces=m.faces.cpu().numpy().astype(np.int32),
-        colors=_np(m.colors()).astype(np.float32),
-        weights=_np(W).astype(np.float32),
+        colors=to_numpy(m.colors()).astype(np.float32),
+        weights=to_numpy(W).astype(np.float32),
         bone_names=[f"bone_{b:02d}" for b in range(B)],
         parents=np.asarray(fitter.skel.parents, dtype=np.int64),
         bind=bind,
-        bone_motion=_h(_np(m.bone_rt(frames))),
-        root=_h(_np(m.root_rt(frames))),
-        K=_np(m.intrinsics_frame(frames)),
+        bone_motion=_h(to_numpy(m.bone_rt(frames))),
+        root=_h(to_numpy(m.root_rt(frames))),
+        K=to_numpy(m.intrinsics_frame(frames)),
         image_size=tuple(int(x) for x in d.frame_size),
         fps=float(d.fps),
         frame_names=list(d.frame_names),
         joints=joints,
         joint_pairs=pairs,
-        centres=_np(m.bone_centers),
+        centres=to_numpy(m.bone_centers),
         precisions=precisions,
         lengths=lengths,
     )
@@ -93,16 +91,12 @@ def write_run(fitter) -> dict:
         export_gltf(rig, run / f"{name}.glb")
     except ImportError as e:  # pragma: no cover - the exporter is part of the package
         log.warning("export skipped: %s", e)
-    from s3o_warp.evaluation.metrics import evaluate_run
-
     d = fitter.data
     metrics = evaluate_run(run, None, masks=d.mask_dir, keypoints=d.keypoints_file, ground_truth=d.ground_truth_dir,
                            object_id=fitter.cfg.data.object_id, progress=False)
     metrics["sequence"] = str(d.sequence_dir)
     metrics["seconds"] = round(fitter.history[-1]["seconds"], 2) if fitter.history else None
-    tmp = run / "metrics.json.tmp"
-    tmp.write_text(json.dumps(metrics, indent=2, default=float))
-    os.replace(tmp, run / "metrics.json")
+    write_json(run / "metrics.json", metrics)
     if fitter.cfg.output.render_video:
         from s3o_warp.run import pictures
 

@@ -10,6 +10,8 @@ import cv2
 import numpy as np
 import torch
 
+from s3o_warp.geometry import project_np
+
 log = logging.getLogger(__name__)
 
 
@@ -84,8 +86,8 @@ def draw_skeleton(img: np.ndarray, rig, frame: int) -> np.ndarray:
     K = rig.K[frame]
 
     def px(p3):
-        q = K @ p3
-        return int(round(q[0] / q[2])), int(round(q[1] / q[2]))
+        x, y = project_np(p3, K)
+        return int(round(x)), int(round(y))
 
     jc = rig.joints_camera()[frame]
     bc = posed_bone_centres(rig, frame)
@@ -211,8 +213,8 @@ def render_canonical(rig, view: np.ndarray, size: int = 256, draw_skeleton: bool
     out = (out * 255).astype(np.uint8)
     if draw_skeleton and rig.centres is not None:
         def px(p):
-            q = K @ (view[:3, :3] @ p + view[:3, 3])
-            return int(round(q[0] / q[2])), int(round(q[1] / q[2]))
+            x, y = project_np(view[:3, :3] @ p + view[:3, 3], K)
+            return int(round(x)), int(round(y))
 
         if rig.joints is not None and rig.joint_pairs is not None:
             for j, (a, b) in enumerate(rig.joint_pairs):

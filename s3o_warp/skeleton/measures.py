@@ -22,6 +22,7 @@ from scipy.spatial import ConvexHull
 from scipy.spatial.distance import pdist
 
 from s3o_warp.geometry import project
+from s3o_warp.geometry import to_numpy as _np
 
 log = logging.getLogger(__name__)
 
@@ -29,13 +30,6 @@ log = logging.getLogger(__name__)
 # ---------------------------------------------------------------------------------------------------
 # array helpers
 # ---------------------------------------------------------------------------------------------------
-
-
-def _np(x, dtype=np.float64) -> np.ndarray:
-    """``x`` (a numpy array, a torch tensor or a nested list) as a numpy array of ``dtype``."""
-    if isinstance(x, torch.Tensor):
-        x = x.detach().cpu().numpy()
-    return np.asarray(x, dtype=dtype)
 
 
 def _check(name: str, arg: str, a: np.ndarray, shape: tuple) -> None:

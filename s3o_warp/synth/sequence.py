@@ -43,6 +43,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..errors import InputError
+from ..geometry import project_np
 from .camera import camera_path
 from .gltf import gltf_keypoints, load_gltf
 from .model import AnimatedMesh
@@ -126,7 +127,8 @@ def keypoint_visibility(kp_cam: np.ndarray, k: np.ndarray, face_index: np.ndarra
         with |depth - z| <= tol.
     """
     z = kp_cam[..., 2]
-    xy = (kp_cam @ k.T)[..., :2] / np.where(np.abs(z) > 1e-12, z, 1e-12)[..., None]
+    off_plane = np.concatenate([kp_cam[..., :2], np.where(np.abs(z) > 1e-12, z, 1e-12)[..., None]], -1)
+    xy = project_np(off_plane, k)  # a keypoint on the camera plane (z = 0) is moved off it: finite, and not visible
     num_t, h, w = face_index.shape
     c = np.rint(xy[..., 0]).astype(np.int64)
     r = np.rint(xy[..., 1]).astype(np.int64)
