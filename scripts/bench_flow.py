@@ -27,6 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
+from s3o_warp.config import DataConfig, make_config
+from s3o_warp.data.crops import map_points
+from s3o_warp.data.flow import FLOW_FB_SIGMA, make_dis, pair_flow
+from s3o_warp.data.io import write_json
+from s3o_warp.data.sequence import open_sequence
+from s3o_warp.evaluation.metrics import load_ground_truth, project, render_frames
 from s3o_warp.provenance import REPO, cpu_name, git_commit, versions
 
 
@@ -39,8 +45,6 @@ def _bench_fit():
 
 def true_frame_flow(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, size: tuple[int, int]):
     """Per frame t < T-1: ``(H, W, 2)`` true flow t -> t+1 in frame pixels and ``(H, W)`` foreground."""
-    from s3o_warp.evaluation.metrics import project, render_frames
-
     out = []
     for start, fi, bary in render_frames(verts[:-1], faces, K[:-1], size, progress=False):
         for k in range(fi.shape[0]):
@@ -58,10 +62,6 @@ def true_frame_flow(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, size: t
 
 def measure(seq_dir: Path, preset: str, finest_scale: int | None, crop_size: int, truth) -> dict:
     """Ratio and end-point error of the crop flow against ``truth`` (from :func:`true_frame_flow`)."""
-    from s3o_warp.config import DataConfig
-    from s3o_warp.data.sequence import map_points, open_sequence
-    from s3o_warp.data.flow import FLOW_FB_SIGMA, make_dis, pair_flow
-
     cfg = DataConfig(crop_size=crop_size, flow_preset=preset)
     seq = open_sequence(seq_dir, cfg=cfg)
     dis = make_dis(preset, finest_scale)
@@ -102,9 +102,6 @@ def main(argv=None) -> int:
     ap.add_argument("--out-dir", default=str(REPO / "runs" / "bench"), help="where sequences are rendered (bench_fit.py's)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
-    from s3o_warp.config import make_config
-    from s3o_warp.evaluation.metrics import load_ground_truth, write_json
-
     if args.crop_size is None:
         args.crop_size = make_config("default").data.crop_size
 
@@ -129,7 +126,7 @@ def main(argv=None) -> int:
                        **measure(seq, preset, finest, args.crop_size, truth)}
                 print(json.dumps(res), flush=True)
                 doc["results"].append(res)
-    write_json(doc, dest)
+    write_json(dest, doc, indent=1)
     print(f"wrote {dest}")
     return 0
 

@@ -21,7 +21,8 @@ import sys
 from pathlib import Path
 
 from s3o_warp.errors import InputError
-from s3o_warp.evaluation.metrics import evaluate_run, read_json, write_json, write_metrics
+from s3o_warp.data.io import read_json
+from s3o_warp.evaluation.metrics import evaluate_run, write_json, write_metrics
 from s3o_warp.provenance import REPO, cpu_name, git_commit, versions
 
 COUNTS = ("limbs", "limbs_distinct", "limbs_framewise")

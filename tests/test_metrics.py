@@ -23,7 +23,7 @@ import torch
 from s3o_warp.evaluation import metrics as M
 from s3o_warp.data.keypoints import BADJA_ANNOTATED, BADJA_JOINT_NAMES, badja_to_keypoints, write_keypoints
 from s3o_warp.errors import InputError
-from s3o_warp.data.sequence import read_mask
+from s3o_warp.data.masks import read_mask
 
 REPO = Path(__file__).resolve().parents[1]
 

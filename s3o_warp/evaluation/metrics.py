@@ -45,8 +45,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
+from s3o_warp.data.io import read_json, write_bytes
+from s3o_warp.data.masks import read_mask
 from s3o_warp.errors import InputError
-from s3o_warp.data.sequence import read_mask
 
 log = logging.getLogger(__name__)
 
@@ -351,27 +352,11 @@ def load_ground_truth(gt) -> GroundTruth:
     return GroundTruth(verts, faces.astype(np.int32), joints, names or [], parents, fnames, K, size, path, tips)
 
 
-def read_json(path, what: str, fix: str):
-    """Parse a JSON file; a missing or malformed file raises a one-line ``InputError`` with ``fix``."""
-    path = Path(path)
-    try:
-        with open(path) as f:
-            return json.load(f)
-    except FileNotFoundError:
-        raise InputError(f"{path}: {what} not found; {fix}") from None
-    except json.JSONDecodeError as e:
-        raise InputError(f"{path}: not valid JSON ({e.msg} at line {e.lineno}); {fix}") from None
-
-
 def write_json(obj, path) -> Path:
     """Write ``obj`` as indented JSON to ``path`` atomically (temporary name, fsync, rename)."""
-    from s3o_warp.export.rig import write_bytes_atomic
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(obj, indent=1).encode()
-    write_bytes_atomic(path, lambda f: f.write(text))
-    return path
+    return write_bytes(path, json.dumps(obj, indent=1).encode())
 
 
 def load_keypoints(path) -> Keypoints:
