@@ -35,8 +35,14 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+import trimesh
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+from skimage.measure import marching_cubes
 
 from s3o_warp.errors import ConfigError, InputError
+from s3o_warp.kernels.sdf import closest_point
 
 log = logging.getLogger(__name__)
 
@@ -203,9 +209,6 @@ def _grid_axes(lo: np.ndarray, hi: np.ndarray, h: float, margin: float, symmetri
 
 def _largest_component(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     """The connected component with the most faces (vertices re-indexed), and the component count."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     n = len(verts)
     i, j = faces.ravel(), faces[:, [1, 2, 0]].ravel()
     graph = coo_matrix((np.ones(len(i), np.int8), (i, j)), shape=(n, n))
@@ -251,9 +254,6 @@ class _Candidate:
 def _march(verts_t: torch.Tensor, faces_t: torch.Tensor, lo: np.ndarray, hi: np.ndarray, h: float,
            s: ResampleSettings, dilate: float = 0.0) -> _Surface | None:
     """SDF on the grid of spacing h -> marching cubes at level dilate x h -> largest component (None: no surface)."""
-    from skimage.measure import marching_cubes
-
-    from s3o_warp.kernels.sdf import closest_point
 
     axes = _grid_axes(lo, hi, h, s.margin_cells, s.symmetric_z)
     shape = tuple(len(a) for a in axes)
@@ -284,8 +284,6 @@ def _march_halves(inside: np.ndarray, h: float, origin: np.ndarray) -> tuple[np.
     """Marching cubes of the z >= 0 and z <= 0 halves of a z-symmetric grid, the lower one mirrored to look
     like an upper one, so a mirror-symmetric field gets a mirror-symmetric triangulation (the case
     tables are not mirror-symmetric); the halves share their samples on z = 0 and are welded there."""
-    from skimage.measure import marching_cubes
-
     kc = (inside.shape[2] - 1) // 2  # the sample plane z = 0
     parts = []
     for sign, half in ((1.0, inside[:, :, kc:]), (-1.0, inside[:, :, kc::-1])):
@@ -319,8 +317,6 @@ def _march_halves(inside: np.ndarray, h: float, origin: np.ndarray) -> tuple[np.
 
 def _mirror_partners(verts: np.ndarray, tol: float) -> np.ndarray:
     """(V,) index of each vertex's mirror image about z = 0 (mutual nearest, within tol), -1 if none."""
-    from scipy.spatial import cKDTree
-
     mirrored = verts * np.array([1.0, 1.0, -1.0])
     dist, j = cKDTree(verts).query(mirrored, distance_upper_bound=tol)
     ok = np.isfinite(dist)
@@ -346,8 +342,6 @@ def _smooth(surf: _Surface, s: ResampleSettings):
     symmetric, but its triangulation is not, so Taubin would move partners differently; their
     displacements are symmetrised (averaged with the mirrored partner's).
     """
-    import trimesh
-
     mesh = trimesh.Trimesh(surf.verts, surf.faces, process=True)
     if mesh.volume < 0:
         mesh.invert()
@@ -393,8 +387,6 @@ def _onto_old(verts: np.ndarray, faces: np.ndarray, v: torch.Tensor, f: torch.Te
               surf: _Surface, partner: np.ndarray | None) -> _Candidate:
     """A new mesh projected onto the old surface (v, f) with ``s.project``, and the old vertices' loss from it
     (farther than ``coverage_distance`` x ``surf.h``)."""
-    from s3o_warp.kernels.sdf import closest_point
-
     dev = v.device
     nv = torch.as_tensor(verts, dtype=torch.float32, device=dev)
     nf = torch.as_tensor(faces, dtype=torch.int64, device=dev)
@@ -630,8 +622,6 @@ def even_resample(
             so far from closed that its distance field has no inside (no surface found), or one that
             needs a grid over ``max_grid_points``.
     """
-    from s3o_warp.kernels.sdf import closest_point
-
     s = settings or ResampleSettings()
     name = "even_resample"
     _check_inputs(name, verts, faces, attributes)
@@ -667,8 +657,6 @@ def even_resample(
     log.debug("%s: %d -> %d vertices, %d faces, spacing %.4g, dilation %.2f, %d components dropped, %d vertices "
               "not projected, %.2f%% old vertices lost", name, v.shape[0], len(new_verts), len(new_faces),
               result.surf.h, result.surf.dilate, result.surf.components - 1, result.kept, 100 * result.lost)
-    import trimesh
-
     check = trimesh.Trimesh(new_verts.cpu().double().numpy(), new_faces.cpu().numpy(), process=False)
     if not (check.is_watertight and check.is_winding_consistent and check.volume > 0):
         log.warning("%s: the resampled mesh is not watertight/consistently wound (%d vertices)", name, len(new_verts))

@@ -16,14 +16,26 @@ entry, other commits' entries stay as history), so cases can be run in separate 
 from __future__ import annotations
 
 import argparse
+import fcntl
 import json
 import logging
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
 
+import cv2
+import numpy as np
+import torch
+
+from s3o_warp.config import make_config
+from s3o_warp.data.io import write_image, write_text
+from s3o_warp.data.keypoints import badja_to_keypoints, write_keypoints
+from s3o_warp.fit import fit, resolve_device
 from s3o_warp.provenance import REPO, cpu_name, git_commit, versions
+from s3o_warp.synth import make_sequence
+
 DATA = Path(os.environ.get("S3O_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 SYNTH = {
@@ -37,8 +49,6 @@ DAVIS = {"cows": "cows", "dog": "dog"}
 
 def prepare_case(case: str, work: Path) -> Path | None:
     """The sequence folder of a case (rendered or converted on first use), or None when data is missing."""
-    from s3o_warp.synth import make_sequence
-
     seq = work / "sequences" / case
     if case in SYNTH:
         spec = dict(SYNTH[case])
@@ -58,10 +68,6 @@ def prepare_case(case: str, work: Path) -> Path | None:
             print(f"bench_fit: skip {case}: {img} not found", file=sys.stderr)
             return None
         if not (seq / "keypoints.json").is_file():
-            import shutil
-
-            from s3o_warp.data.keypoints import badja_to_keypoints, write_keypoints
-
             seq.mkdir(parents=True, exist_ok=True)
             for sub, src in (("images", img), ("masks", DATA / "davis" / "Annotations" / "480p" / name)):
                 if not (seq / sub).exists():
@@ -122,12 +128,6 @@ def main(argv=None) -> int:
                          "overwrite the sequence's figure")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")  # the fit's log (M-step edits) to stderr
-
-    import torch
-
-    from s3o_warp.config import make_config
-    from s3o_warp.fit import fit, resolve_device
-
     device = resolve_device(args.device)
     work = Path(args.out_dir)
     dest = REPO / "benchmarks" / f"fit-{device.type}.json"
@@ -193,25 +193,18 @@ def _same_run(a: dict, b: dict) -> bool:
 def record(dest: Path, header: dict, entry: dict) -> None:
     """Merge one fit's entry into ``dest`` (replacing an earlier entry of the same fit, :func:`_same_run`),
     re-reading the file under a lock so fits run side by side do not drop each other's rows;
-    written to a temporary name, then renamed."""
-    import fcntl
-
+    written atomically."""
     dest.parent.mkdir(parents=True, exist_ok=True)
     with open(dest.with_suffix(".json.lock"), "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         doc = json.loads(dest.read_text()) if dest.is_file() else {"results": []}
         doc.update(header)
         doc["results"] = [r for r in doc["results"] if not _same_run(r, entry)] + [entry]
-        tmp = dest.with_suffix(f".json.{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(doc, indent=2, default=float))
-        os.replace(tmp, dest)
+        write_text(dest, json.dumps(doc, indent=2, default=float))
 
 
 def _compose(pictures, dest: Path) -> None:
     """Side by side dominant-bone pictures labelled with their t_o."""
-    import cv2
-    import numpy as np
-
     imgs = []
     for t_o, p in pictures:
         im = cv2.imread(str(p))
@@ -221,9 +214,7 @@ def _compose(pictures, dest: Path) -> None:
         imgs.append(im)
     if imgs:
         dest.parent.mkdir(parents=True, exist_ok=True)
-        tmp = dest.with_name(dest.stem + ".tmp.png")
-        cv2.imwrite(str(tmp), np.concatenate(imgs, 1))
-        os.replace(tmp, dest)
+        write_image(dest, np.concatenate(imgs, 1)[..., ::-1])  # BGR as read -> RGB
         print(f"wrote {dest}")
 
 

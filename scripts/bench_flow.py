@@ -28,9 +28,10 @@ from pathlib import Path
 import numpy as np
 
 from s3o_warp.config import DataConfig, make_config
+from s3o_warp.data.crops import map_points
 from s3o_warp.data.flow import FLOW_FB_SIGMA, make_dis, pair_flow
 from s3o_warp.data.io import write_json
-from s3o_warp.data.sequence import map_points, open_sequence
+from s3o_warp.data.sequence import open_sequence
 from s3o_warp.evaluation.image import render_frames
 from s3o_warp.evaluation.loaders import load_ground_truth
 from s3o_warp.geometry import project_np

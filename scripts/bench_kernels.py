@@ -20,8 +20,15 @@ import time
 from pathlib import Path
 
 import torch
+import trimesh
 
+from s3o_warp.data.io import write_text
+from s3o_warp.kernels import nearest, raster, regularisers, skinning, visibility
 from s3o_warp.provenance import REPO, git_commit, versions
+from s3o_warp.reference import nearest as rnear
+from s3o_warp.reference import raster as rraster
+from s3o_warp.reference import regularisers as rreg
+from s3o_warp.reference import skinning as rskin
 
 
 def timeit(fn, device: str, repeats: int, warmup: int = 1) -> dict:
@@ -54,8 +61,6 @@ def fwd_bwd(op, inputs: list[torch.Tensor]):
 
 
 def sphere(subdiv: int, device: str, radius=1.0, depth=3.0):
-    import trimesh
-
     m = trimesh.creation.icosphere(subdivisions=subdiv, radius=radius)
     v = torch.tensor(m.vertices, dtype=torch.float32, device=device)
     v[:, 2] += depth
@@ -73,11 +78,6 @@ def main(argv=None) -> int:
     if dev.startswith("cuda") and not torch.cuda.is_available():
         print("bench_kernels: --device cuda but no CUDA device is visible; use --device cpu", file=sys.stderr)
         return 2
-
-    from s3o_warp.kernels import raster, regularisers, skinning, visibility
-    from s3o_warp.reference import raster as rraster
-    from s3o_warp.reference import regularisers as rreg
-    from s3o_warp.reference import skinning as rskin
 
     cases = []
 
@@ -164,9 +164,6 @@ def main(argv=None) -> int:
     add("vertex_visibility", pv, "warp_bvh_refit", lambda: visibility.vertex_visibility(vis_v, f4))
 
     # --- nearest projected vertex per uncovered pixel (the coverage loss): Q = 256 x 8, N ~ 2562, T = 8 ---
-    from s3o_warp.kernels import nearest
-    from s3o_warp.reference import nearest as rnear
-
     g = torch.Generator().manual_seed(0)
     pts = (torch.rand(8, int(v4.shape[0]), 2, generator=g) * 192).to(dev)
     qs = (torch.rand(256 * 8, 2, generator=g) * 192).to(dev)
@@ -190,9 +187,7 @@ def main(argv=None) -> int:
     print(json.dumps(summary, indent=2))
     dest = REPO / "benchmarks" / f"kernels-{dev.split(':')[0]}.json"
     dest.parent.mkdir(exist_ok=True)
-    tmp = dest.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(out, indent=2))
-    os.replace(tmp, dest)
+    write_text(dest, json.dumps(out, indent=2))
     print(f"wrote {dest}")
     return 0
 

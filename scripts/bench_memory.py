@@ -13,13 +13,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+from s3o_warp.data.io import write_text
+from s3o_warp.provenance import REPO, device_name, git_commit, versions
+from s3o_warp.synth import make_sequence
 
 CHILD = r"""
 import resource, sys, json, time, torch
@@ -44,8 +45,6 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=40)
     ap.add_argument("--work", default=str(REPO / "runs" / "bench-memory"))
     args = ap.parse_args(argv)
-    from s3o_warp.synth import make_sequence
-
     W, H = (int(x) for x in args.size.lower().split("x"))
     work = Path(args.work)
     results = []
@@ -65,8 +64,6 @@ def main(argv=None) -> int:
         rec.update(frames=n, size=[W, H], steps_per_phase=args.steps)
         results.append(rec)
         print(json.dumps(rec), flush=True)
-    from s3o_warp.provenance import device_name, git_commit, versions
-
     doc = {
         "command": " ".join(["python"] + sys.argv),
         "device": args.device,
@@ -77,9 +74,7 @@ def main(argv=None) -> int:
         "results": results,
     }
     dest = REPO / "benchmarks" / f"memory-{args.device.split(':')[0]}.json"
-    tmp = dest.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(doc, indent=2))
-    os.replace(tmp, dest)
+    write_text(dest, json.dumps(doc, indent=2))
     print(f"wrote {dest}")
     return 0
 

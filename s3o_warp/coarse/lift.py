@@ -13,6 +13,8 @@ from collections import deque
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import trimesh
+from skimage.measure import marching_cubes
 
 from s3o_warp.coarse.skeleton2d import ENDPOINT, CoarseSettings, Skeleton2D, symmetric_pairs
 from s3o_warp.errors import InputError
@@ -279,8 +281,6 @@ def ellipsoid_field(coarse: Coarse3D, points: np.ndarray, smooth: float = 0.0) -
 
 
 def _march(coarse: Coarse3D, h: float, smooth: float):
-    from skimage.measure import marching_cubes
-
     centres, _, radii = coarse.all_ellipsoids()
     reach = radii.max(axis=1, keepdims=True)
     margin = 2.0 * h + smooth * np.log(max(len(centres), 1))
@@ -313,8 +313,6 @@ def ellipsoid_union_mesh(coarse: Coarse3D, target_vertices: int | None = None,
     Returns:
         (verts (V, 3) float32 object frame, faces (F, 3) int32).
     """
-    import trimesh
-
     s = settings or CoarseSettings()
     if target_vertices is not None:
         s = replace(s, target_vertices=int(target_vertices))

@@ -19,8 +19,8 @@ What is computed, for each pair of frames (t, t+1) with crops A_t, A_{t+1} (``cr
 
 Each pair is one memory-mappable ``<cache_dir>/flow_<key>.npy`` of shape (S, S, 6) float32
 (channels: fwd dx, fwd dy, bwd dx, bwd dy, conf_fwd, conf_bwd), keyed on a SHA-256 of both frames'
-content, both masks, the crop and flow settings and the OpenCV version; written to a temporary name
-and renamed. A second :func:`compute_flow` over the same content only checks headers.
+content, both masks, the crop and flow settings and the OpenCV version; written atomically
+(:mod:`s3o_warp.data.io`). A second :func:`compute_flow` over the same content only checks headers.
 """
 
 from __future__ import annotations
@@ -29,7 +29,6 @@ import hashlib
 import json
 import logging
 import math
-import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,10 +38,19 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from s3o_warp.config import DataConfig
+from s3o_warp.data.crops import warp_similarity
+from s3o_warp.data.io import write_stream
+from s3o_warp.data.sequence import Sequence, check_data_config
 from s3o_warp.errors import ConfigError, InputError
-from s3o_warp.data.sequence import FLOW_PRESETS, Sequence, check_data_config, crop_transform, warp_similarity
 
 log = logging.getLogger(__name__)
+
+FLOW_PRESETS = {
+    "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
+    "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+    "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
+}
+"""``DataConfig.flow_preset`` names and their OpenCV DIS presets."""
 
 FLOW_FORMAT_VERSION = 1
 """Bumped whenever what is stored in a flow cache file changes (old files are then ignored)."""
@@ -256,17 +264,6 @@ def _is_valid_file(path: Path, crop_size: int) -> bool:
     return arr.shape == (crop_size, crop_size, _CHANNELS) and arr.dtype == np.float32
 
 
-def _save_atomic(path: Path, arr: np.ndarray) -> None:
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            np.save(f, arr)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
 def compute_flow(seq: Sequence, cache_dir: str | Path, cfg: DataConfig | None = None) -> FlowCache:
     """Flow for every pair (t, t+1) of ``seq``, computed once and cached under ``cache_dir``.
 
@@ -296,14 +293,14 @@ def compute_flow(seq: Sequence, cache_dir: str | Path, cfg: DataConfig | None = 
         )
     cache_dir = Path(cache_dir)
     S = cfg.crop_size
-    c2f = np.stack([crop_transform(tuple(b), S, cfg.crop_scale) for b in seq.bboxes])
+    c2f = seq.crop_to_frame  # the crop settings are the sequence's (checked above)
     files = [cache_dir / f"flow_{pair_key(seq, t, cfg)[:40]}.npy" for t in range(seq.num_frames - 1)]
     todo = [t for t, f in enumerate(files) if not (f.is_file() and _is_valid_file(f, S))]
     dis = make_dis(cfg.flow_preset, FLOW_FINEST_SCALE) if todo else None
     for t in tqdm(todo, desc=f"{seq.name}: optical flow", unit="pair", leave=False, disable=None):
         arr = pair_flow(seq.image(t), seq.image(t + 1), c2f[t], c2f[t + 1], S, FLOW_FB_SIGMA, dis)
         cache_dir.mkdir(parents=True, exist_ok=True)
-        _save_atomic(files[t], arr)
+        write_stream(files[t], lambda f: np.save(f, arr))
     hits = len(files) - len(todo)
     log.info(
         "%s: optical flow for %d pairs (%d computed, %d cached) in %s", seq.name, len(files), len(todo), hits, cache_dir

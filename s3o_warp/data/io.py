@@ -1,41 +1,136 @@
-"""Atomic file output: every file of a run is written to a temporary name beside it, then renamed onto it, so a
-crash or a stop never leaves a half-written file where a finished one is expected; and the JSON reader whose
-errors name the file and the fix (:func:`read_json`)."""
+"""Files in and out. Output is atomic: every file (or folder) is written under a temporary name beside it, then
+renamed onto it, so a crash or a stop never leaves a half-written file where a finished one is expected. JSON is
+read by :func:`read_json`, whose errors name the file and the fix.
+
+Temporary names are ``.NAME.tmp-PID.EXT`` (files) and ``.NAME.tmp-PID`` (folders). An exception removes its own
+temporary; a killed process leaves it behind, and the next write of the same path removes it.
+"""
 
 from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
+import re
+import shutil
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import BinaryIO
 
+import cv2
+import numpy as np
 import torch
 
 from s3o_warp.errors import InputError
 
+log = logging.getLogger(__name__)
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _temp_name(path: Path) -> Path:
+    """``.NAME.tmp-PID.EXT`` beside ``path`` (same suffix, so writers that choose the format by it still work)."""
+    return path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+
+
+def _remove_stale_temps(path: Path) -> None:
+    """Remove temporaries of ``path`` left by processes that no longer run (killed writers)."""
+    pattern = re.compile(rf"^\.{re.escape(path.stem)}\.tmp-(\d+){re.escape(path.suffix)}$")
+    for p in path.parent.iterdir():
+        m = pattern.match(p.name)
+        if m and int(m.group(1)) != os.getpid() and not _pid_alive(int(m.group(1))):
+            log.info("removing %s, left by a writer that was killed", p)
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                with contextlib.suppress(OSError):
+                    p.unlink()
+
+
+def _temp_beside(path) -> Path:
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise InputError(f"{path}: the output folder {path.parent} does not exist; create it or choose another path")
+    _remove_stale_temps(path)
+    return _temp_name(path)
+
 
 @contextlib.contextmanager
-def atomic_path(path):
-    """A temporary path beside ``path`` (same suffix, so writers that choose the format by it still work); when the
-    block ends without an error it is renamed onto ``path``, otherwise removed.
+def atomic_path(path) -> Iterator[Path]:
+    """A temporary path beside ``path``; when the block ends without an error it is renamed onto ``path``, otherwise
+    removed.
 
-    Concretely, ``with atomic_path("a/b.png") as tmp: imageio.imwrite(tmp, img)`` writes ``a/.b.<pid>.tmp.png``
-    and renames it to ``a/b.png``.
+    Concretely, ``with atomic_path("a/b.png") as tmp: cv2.imwrite(str(tmp), img)`` writes ``a/.b.tmp-<pid>.png``
+    and renames it to ``a/b.png``. The folder ``a`` must exist (:class:`InputError` otherwise).
     """
-    path = Path(path)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    tmp = _temp_beside(path)
     try:
         yield tmp
         os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+
+
+@contextlib.contextmanager
+def atomic_dir(path) -> Iterator[Path]:
+    """A new empty folder beside ``path``; when the block ends without an error it replaces ``path`` (an existing
+    folder there is removed), otherwise it is removed. The parent of ``path`` is created if missing."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _temp_beside(path)
+    tmp.mkdir()
+    try:
+        yield tmp
+        if path.exists():
+            old = path.with_name(f".{path.name}.old-{os.getpid()}")
+            path.rename(old)
+            tmp.rename(path)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            tmp.rename(path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def read_json(path, what: str, fix: str):
+    """Parse a JSON file; a missing or malformed file raises a one-line :class:`InputError` naming ``what`` and
+    ``fix``."""
+    path = Path(path)
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except FileNotFoundError:
+        raise InputError(f"{path}: {what} not found; {fix}") from None
+    except json.JSONDecodeError as e:
+        raise InputError(f"{path}: not valid JSON ({e.msg} at line {e.lineno}); {fix}") from None
+
+
+def write_stream(path, writer: Callable[[BinaryIO], object]) -> Path:
+    """``path`` holds what ``writer(file)`` writes into a binary file, written atomically (flushed and synced to disk
+    before the rename)."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            writer(f)
+            f.flush()
+            os.fsync(f.fileno())
+    return Path(path)
 
 
 def write_bytes(path, data: bytes) -> Path:
     """``path`` holds ``data``, written atomically."""
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-    return Path(path)
+    return write_stream(path, lambda f: f.write(data))
 
 
 def write_text(path, text: str) -> Path:
@@ -49,16 +144,14 @@ def write_json(path, obj, indent: int | None = 2) -> Path:
     return write_text(path, json.dumps(obj, indent=indent) + "\n")
 
 
-def read_json(path, what: str, fix: str):
-    """Parse a JSON file; a missing or malformed file raises a one-line ``InputError`` with ``fix``."""
-    path = Path(path)
-    try:
-        with open(path) as f:
-            return json.load(f)
-    except FileNotFoundError:
-        raise InputError(f"{path}: {what} not found; {fix}") from None
-    except json.JSONDecodeError as e:
-        raise InputError(f"{path}: not valid JSON ({e.msg} at line {e.lineno}); {fix}") from None
+def write_image(path, image: np.ndarray) -> Path:
+    """``path`` holds ``image`` (``(H, W, 3)`` uint8 RGB or ``(H, W)`` grey), in the format its suffix names (PNG,
+    JPEG...), written atomically."""
+    img = np.ascontiguousarray(image[..., ::-1] if image.ndim == 3 else image)
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), img):
+            raise InputError(f"{path}: could not write the image; check the folder is writable")
+    return Path(path)
 
 
 def copy_file(src, dst) -> Path:

@@ -10,7 +10,7 @@ Coordinates are ``[row, col]`` pixels of the full-resolution DAVIS frame (1920 x
 are the 33 SMAL model joints plus nose tip, chin and both ears; only 20 of them are ever annotated
 (``BADJA_ANNOTATED``, the set LASR/ViSER score with PCK-T).
 
-Our ``keypoints.json`` (DESIGN.md, "Input sequence") holds full-frame pixel coordinates of the frames
+Our ``keypoints.json`` (docs/method.md, the input sequence) holds full-frame pixel coordinates of the frames
 we actually fit, in OpenCV's centre convention (pixel (c, r) has its centre at (c, r))::
 
     {"names": [...], "frames": {"00000": [[x, y, visible], ...], ...}}
@@ -25,6 +25,7 @@ import argparse
 import logging
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from s3o_warp.data.io import read_json, write_json
@@ -127,14 +128,13 @@ def badja_to_keypoints(
 
 
 def write_keypoints(keypoints: dict, path) -> Path:
-    """Write a keypoints dictionary as JSON to ``path`` atomically (temporary file, then rename)."""
+    """Write a keypoints dictionary as JSON to ``path`` atomically (its folder is created if missing)."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     return write_json(path, keypoints, indent=1)
 
 
 def frame_size_of(frames_dir) -> tuple[int, int]:
     """(H, W) of the first image (in name order) of a folder of frames."""
-    import cv2
-
     d = Path(frames_dir)
     if not d.is_dir():
         raise InputError(f"{d}: frames folder not found; pass the sequence's images/ folder or use --frame-size H W")

@@ -1,4 +1,4 @@
-"""Reading a sequence: frames + masks from a folder, a DAVIS tree or a video file; square crops.
+"""Reading a sequence: frames + masks from a folder, a DAVIS tree or a video file, decoded on demand.
 
 Input layouts (detected by :func:`open_sequence`, nothing needs renaming):
 
@@ -9,17 +9,8 @@ Input layouts (detected by :func:`open_sequence`, nothing needs renaming):
   pass ``name=``), or the ``JPEGImages/<res>/<name>`` folder itself;
 * a video file OpenCV can decode (``.mp4``, ``.avi``, ...) plus a mask folder (``masks=``).
 
-Masks: a palette PNG gives object ids (``DataConfig.object_id`` selects one; None = every non-zero
-id); any other mask is foreground where value (for colour masks: the brightest channel) >
-``DataConfig.mask_threshold``.
-
-Pixel convention everywhere (OpenCV's): the centre of pixel (column c, row r) is at (c, r), and an
-image of width W spans [-0.5, W - 0.5]. A :class:`Crop` keeps the exact 3x3 similarity
-``crop_to_frame`` mapping homogeneous crop pixel coordinates to full-frame pixel coordinates, so
-``K_frame = crop_to_frame @ K_crop`` (:func:`intrinsics_crop_to_frame`).
-
-Optical flow on the crops lives in :mod:`s3o_warp.data.flow` (``compute_flow``, ``FlowCache``), also
-reachable as ``s3o_warp.data.sequence.compute_flow``.
+Masks are read by :mod:`s3o_warp.data.masks`, crops made by :mod:`s3o_warp.data.crops`; optical flow on the
+crops is :mod:`s3o_warp.data.flow`.
 
 Every bad input raises :class:`s3o_warp.errors.InputError` (bad settings:
 :class:`s3o_warp.errors.ConfigError`) with one line naming the file or setting and the fix. This
@@ -43,26 +34,14 @@ from PIL import Image, UnidentifiedImageError
 from tqdm.auto import tqdm
 
 from s3o_warp.config import DataConfig, check_fields
-from s3o_warp.errors import ConfigError, InputError
+from s3o_warp.data.crops import Crop, crop_frame, crop_transform, mask_bbox
+from s3o_warp.data.masks import clean_mask, read_mask
+from s3o_warp.errors import InputError
 
 log = logging.getLogger(__name__)
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 """File name endings read as frames or masks (case-insensitive); other files in the folders are ignored."""
-
-FLOW_PRESETS = {
-    "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
-    "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
-    "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
-}
-"""``DataConfig.flow_preset`` names and their OpenCV DIS presets."""
-
-CROP_BACKGROUND = (0, 0, 0)
-"""RGB colour given to crop pixels that fall outside the frame (masks get 0 there)."""
-
-BLOB_GAP = 0.05
-"""``data.largest_blob``: fragments within this fraction of the largest blob's bbox diagonal belong to the object
-(thin legs break off a mask by a pixel or two)."""
 
 BORDER_WEIGHT = 0.3
 """Silhouette-loss weight of frames where the object touches the frame border (it leaves the frame, so the mask
@@ -71,33 +50,7 @@ shows only part of it)."""
 FRAME_CACHE_SIZE = 4
 """Decoded frames (image and mask) a sequence keeps in memory; others are read from disk on demand."""
 
-__all__ = [
-    "Crop",
-    "Sequence",
-    "open_sequence",
-    "check_data_config",
-    "crop_frame",
-    "crop_transform",
-    "mask_bbox",
-    "read_mask",
-    "largest_component",
-    "map_points",
-    "intrinsics_crop_to_frame",
-    "intrinsics_frame_to_crop",
-    "warp_similarity",
-    "compute_flow",
-    "FlowCache",
-    "FlowPair",
-]
-
-
-def __getattr__(name: str) -> Any:
-    """Lazy re-export of the flow API from :mod:`s3o_warp.data.flow` (avoids a circular import)."""
-    if name in ("compute_flow", "FlowCache", "FlowPair"):
-        from s3o_warp.data import flow as video_flow
-
-        return getattr(video_flow, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__all__ = ["Sequence", "open_sequence", "check_data_config"]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -108,227 +61,6 @@ def __getattr__(name: str) -> Any:
 def check_data_config(cfg: DataConfig) -> None:
     """Raise ConfigError (naming ``data.<key>``) for a DataConfig value that cannot work."""
     check_fields(cfg, "data.")
-
-
-# --------------------------------------------------------------------------------------------------
-# Geometry: boxes, crop transforms, point and intrinsics mapping
-# --------------------------------------------------------------------------------------------------
-
-
-def mask_bbox(mask: np.ndarray) -> tuple[int, int, int, int] | None:
-    """Inclusive pixel bounding box ``(x0, y0, x1, y1)`` of a boolean ``(H, W)`` mask; None when empty.
-
-    Concretely, foreground pixel centres span columns x0..x1 and rows y0..y1, so the box's edges in
-    the pixel-centre convention are at x0 - 0.5 and x1 + 0.5.
-    """
-    cols = np.flatnonzero(mask.any(axis=0))
-    if cols.size == 0:
-        return None
-    rows = np.flatnonzero(mask.any(axis=1))
-    return int(cols[0]), int(rows[0]), int(cols[-1]), int(rows[-1])
-
-
-def crop_transform(bbox: tuple[int, int, int, int], crop_size: int, crop_scale: float) -> np.ndarray:
-    """``crop_to_frame`` (3, 3) float64 for the square crop around an inclusive pixel box.
-
-    The square is centred on the box centre ((x0 + x1) / 2, (y0 + y1) / 2) with side
-    ``crop_scale * max(x1 - x0 + 1, y1 - y0 + 1)`` frame pixels; its edges map to the crop image's
-    edges -0.5 and crop_size - 0.5. With a = side / crop_size (frame pixels per crop pixel), crop
-    pixel (c, r) sits at frame point (a (c + 0.5) + left, a (r + 0.5) + top).
-    """
-    x0, y0, x1, y1 = bbox
-    side = crop_scale * max(x1 - x0 + 1, y1 - y0 + 1)
-    a = side / crop_size
-    left = 0.5 * (x0 + x1) - 0.5 * side
-    top = 0.5 * (y0 + y1) - 0.5 * side
-    return np.array([[a, 0.0, left + 0.5 * a], [0.0, a, top + 0.5 * a], [0.0, 0.0, 1.0]])
-
-
-def map_points(points: Any, transform: Any) -> Any:
-    """Apply a 3x3 pixel transform to points ``(..., 2)`` (numpy or torch, same type back).
-
-    Args:
-        points: ``(..., 2)`` pixel coordinates (x = column, y = row), pixel-centre convention.
-        transform: ``(3, 3)`` or, for per-frame points, ``(T, 3, 3)`` broadcast against
-            ``points (T, N, 2)``; e.g. ``Crop.crop_to_frame`` maps crop pixels to frame pixels.
-
-    Returns:
-        ``(..., 2)`` mapped points, dtype of ``points`` (numpy) or promoted (torch).
-    """
-    try:
-        import torch
-
-        is_torch = isinstance(points, torch.Tensor)
-    except ImportError:  # pragma: no cover - torch is a dependency
-        is_torch = False
-    if is_torch:
-        tr = torch.as_tensor(transform, dtype=points.dtype, device=points.device)
-        lin, off = tr[..., :2, :2], tr[..., :2, 2]
-        if tr.dim() == 3:
-            return torch.einsum("tij,tnj->tni", lin, points) + off[:, None, :]
-        return points @ lin.T + off
-    pts = np.asarray(points)
-    tr = np.asarray(transform, dtype=np.float64)
-    lin, off = tr[..., :2, :2], tr[..., :2, 2]
-    if tr.ndim == 3:
-        out = np.einsum("tij,tnj->tni", lin, pts) + off[:, None, :]
-    else:
-        out = pts @ lin.T + off
-    return out.astype(pts.dtype) if np.issubdtype(pts.dtype, np.floating) else out
-
-
-def intrinsics_crop_to_frame(K_crop: Any, crop_to_frame: Any) -> Any:
-    """``K_frame = crop_to_frame @ K_crop``: pinhole intrinsics ``(..., 3, 3)`` from crop to frame pixels.
-
-    Exact because a crop transform is affine (last row 0, 0, 1): projecting with K_frame equals
-    projecting with K_crop and mapping the pixel with crop_to_frame. numpy or torch in, same out.
-    """
-    return _as_like(crop_to_frame, K_crop) @ K_crop
-
-
-def intrinsics_frame_to_crop(K_frame: Any, frame_to_crop: Any) -> Any:
-    """``K_crop = frame_to_crop @ K_frame``: the inverse of :func:`intrinsics_crop_to_frame`."""
-    return _as_like(frame_to_crop, K_frame) @ K_frame
-
-
-def _as_like(m: Any, like: Any) -> Any:
-    try:
-        import torch
-
-        if isinstance(like, torch.Tensor):
-            return torch.as_tensor(m, dtype=like.dtype, device=like.device)
-    except ImportError:  # pragma: no cover
-        pass
-    return np.asarray(m, dtype=np.result_type(np.asarray(like).dtype, np.float64))
-
-
-def warp_similarity(
-    image: np.ndarray,
-    out_to_in: np.ndarray,
-    out_size: tuple[int, int],
-    border_value: float | tuple[float, ...] = 0,
-    interpolation: int = cv2.INTER_LINEAR,
-) -> np.ndarray:
-    """Resample ``image`` on an output grid given by a scale + translation ``out_to_in`` (3, 3).
-
-    Output pixel (c, r) takes the (bilinear) value at input point ``out_to_in @ (c, r, 1)``
-    (pixel-centre convention, exact up to OpenCV's 1/32-pixel interpolation table); outside the
-    input it gets ``border_value``. When the output is more than 2x coarser than the input, the
-    input is first reduced with ``cv2.pyrDown`` (Gaussian, centre-preserving: input pixel x of a
-    pyrDown level is pixel 2x of the level below) so the result is not aliased.
-
-    Args:
-        image: ``(H, W)`` or ``(H, W, C)`` uint8 or float32.
-        out_to_in: ``(3, 3)`` similarity without rotation: ``[[a, 0, tx], [0, a, ty], [0, 0, 1]]``.
-        out_size: ``(height, width)`` of the output.
-        border_value: value (or per-channel values) outside the input.
-        interpolation: OpenCV flag (``cv2.INTER_LINEAR`` or ``cv2.INTER_NEAREST``).
-
-    Returns:
-        ``(height, width[, C])`` array, dtype of ``image``.
-    """
-    m = np.array(out_to_in, dtype=np.float64)
-    src = image
-    if interpolation != cv2.INTER_NEAREST:
-        while m[0, 0] >= 2.0 and min(src.shape[:2]) >= 4:
-            src = cv2.pyrDown(src)
-            # level-k pixel x sits at level-(k-1) pixel 2x, so in level-k pixels the point is p / 2
-            m = np.diag([0.5, 0.5, 1.0]) @ m
-    in_to_out = np.linalg.inv(m)[:2]
-    bv = border_value if isinstance(border_value, (tuple, list)) else (border_value,) * 4
-    return cv2.warpAffine(
-        src,
-        in_to_out,
-        (int(out_size[1]), int(out_size[0])),
-        flags=interpolation,
-        borderMode=cv2.BORDER_CONSTANT,
-        borderValue=tuple(float(v) for v in bv),
-    )
-
-
-@dataclass
-class Crop:
-    """One frame's square crop at the working resolution S = ``DataConfig.crop_size``.
-
-    Attributes:
-        image: ``(S, S, 3) uint8`` RGB crop; pixels outside the frame are :data:`CROP_BACKGROUND`.
-        mask: ``(S, S) bool`` foreground crop; False outside the frame.
-        crop_to_frame: ``(3, 3) float64``; frame pixel = crop_to_frame @ (c, r, 1) for crop pixel (c, r).
-        frame_to_crop: ``(3, 3) float64`` inverse of crop_to_frame.
-        bbox: inclusive frame-pixel mask box ``(x0, y0, x1, y1)`` the crop was made from.
-    """
-
-    image: np.ndarray
-    mask: np.ndarray
-    crop_to_frame: np.ndarray
-    frame_to_crop: np.ndarray
-    bbox: tuple[int, int, int, int]
-
-
-def crop_frame(
-    image: np.ndarray,
-    mask: np.ndarray,
-    crop_size: int,
-    crop_scale: float,
-    background: tuple[int, int, int] = CROP_BACKGROUND,
-    bbox: tuple[int, int, int, int] | None = None,
-) -> Crop:
-    """Square crop of a frame around its mask box, resized to ``crop_size x crop_size``.
-
-    Args:
-        image: ``(H, W, 3)`` uint8 RGB (or float32) full frame.
-        mask: ``(H, W)`` bool foreground; must not be empty.
-        crop_size: S, output side in pixels.
-        crop_scale: square side as a multiple of the mask box's longer side (see :func:`crop_transform`).
-        background: RGB fill where the square leaves the frame.
-        bbox: the mask's box if already known (saves a pass over the mask).
-
-    Returns:
-        :class:`Crop` with the image (bilinear, anti-aliased when shrinking), the mask (resampled as
-        0/255 and thresholded at half) and the exact crop <-> frame transforms.
-
-    Raises:
-        ValueError: empty mask, or image and mask sizes differ.
-    """
-    if image.shape[:2] != mask.shape[:2]:
-        raise ValueError(f"crop_frame(): image {image.shape[:2]} and mask {mask.shape[:2]} differ in size")
-    if bbox is None:
-        bbox = mask_bbox(mask)
-        if bbox is None:
-            raise ValueError("crop_frame(): the mask is empty")
-    c2f = crop_transform(bbox, crop_size, crop_scale)
-    img = warp_similarity(image, c2f, (crop_size, crop_size), tuple(background))
-    msk = warp_similarity(mask.astype(np.uint8) * 255, c2f, (crop_size, crop_size), 0) > 127
-    return Crop(image=img, mask=msk, crop_to_frame=c2f, frame_to_crop=np.linalg.inv(c2f), bbox=bbox)
-
-
-def _clean_mask(mask: np.ndarray, cfg) -> np.ndarray:
-    """The mask as the fit uses it: with ``data.largest_blob``, the largest blob and the fragments near it.
-
-    Thin parts (a leg, a tail tip) often break off a few pixels from the body in a mask; they belong to
-    the object and are kept when they lie within :data:`BLOB_GAP` x the largest blob's bbox diagonal of
-    it. Blobs farther away (another object, noise) are dropped.
-    """
-    if not getattr(cfg, "largest_blob", False) or not mask.any():
-        return mask
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    if n <= 2:
-        return mask
-    best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    w, h = stats[best, cv2.CC_STAT_WIDTH], stats[best, cv2.CC_STAT_HEIGHT]
-    r = max(1, int(round(BLOB_GAP * float(np.hypot(w, h)))))
-    near = cv2.dilate((labels == best).astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
-    keep = np.unique(labels[(near > 0) & (labels > 0)])
-    return np.isin(labels, keep)
-
-
-def largest_component(mask: np.ndarray) -> np.ndarray:
-    """The largest 8-connected foreground component of a boolean ``(H, W)`` mask (all False if empty)."""
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    if n <= 1:
-        return np.zeros_like(mask, dtype=bool)
-    best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    return labels == best
 
 
 # --------------------------------------------------------------------------------------------------
@@ -367,47 +99,6 @@ def _read_rgb(path: Path) -> np.ndarray:
         raise InputError(f"{path}: OpenCV cannot decode this image; replace or remove the file")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
-
-def read_mask(path: Path, object_id: int | None = None, threshold: int = DataConfig.mask_threshold) -> np.ndarray:
-    """Boolean (H, W) foreground of one mask file; see the module docstring for the rules (``object_id`` and
-    ``threshold``: ``DataConfig.object_id`` and ``mask_threshold``)."""
-    try:
-        with Image.open(path) as im:
-            im.load()
-            mode = im.mode
-            if mode == "P":
-                arr = np.array(im)
-            elif mode in ("1", "L", "I", "I;16", "F"):
-                arr = np.array(im)
-            else:  # RGB(A), LA, CMYK...: a coloured mask is foreground where any channel is bright
-                arr = np.array(im.convert("RGB")).max(axis=-1)
-    except (UnidentifiedImageError, OSError, SyntaxError) as exc:
-        raise InputError(
-            f"{path}: cannot read this mask ({exc.__class__.__name__}); replace or remove the file"
-        ) from None
-    if mode == "P":
-        if object_id is None:
-            return arr != 0
-        fg = arr == object_id
-        if not fg.any():
-            ids = ", ".join(str(int(i)) for i in np.unique(arr))
-            raise InputError(
-                f"{path}: palette mask has no pixel with object id {object_id} (ids present: {ids}); "
-                "set data.object_id (--object-id) to the object's id, or fix or remove this frame"
-            )
-        return fg
-    if mode == "1":
-        return arr.astype(bool)
-    if object_id is not None and mode in ("L", "I", "I;16"):
-        # a single-channel label image: the object's pixels carry its id
-        fg = arr == object_id
-        if not fg.any():
-            raise InputError(
-                f"{path}: label mask has no pixel with object id {object_id}; "
-                "set data.object_id to the object's value, or None for binary masks"
-            )
-        return fg
-    return arr > threshold
 
 
 def _sha256_file(path: Path, chunk: int = 1 << 20) -> str:
@@ -592,7 +283,7 @@ class Sequence:
         """Frame k's foreground as ``(H, W) bool`` (read-only array; decoded on demand)."""
         k = self._index(k)
         return self._cached(
-            ("mask", k), lambda: _clean_mask(read_mask(self.mask_files[k], self.cfg.object_id, self.cfg.mask_threshold), self.cfg)
+            ("mask", k), lambda: clean_mask(read_mask(self.mask_files[k], self.cfg.object_id, self.cfg.mask_threshold), self.cfg)
         )
 
     def frame_digest(self, k: int) -> str:
@@ -774,7 +465,7 @@ def open_sequence(
     H, W = size
     for k, mf in enumerate(tqdm(mask_files, desc=f"{seq_name}: masks", unit="mask", leave=False, disable=None)):
         raw = read_mask(mf, cfg.object_id, cfg.mask_threshold)
-        m = _clean_mask(raw, cfg)
+        m = clean_mask(raw, cfg)
         if m is not raw and (m != raw).any():
             multi_blob.append(k)
         if m.shape != (H, W):

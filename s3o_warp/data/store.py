@@ -15,6 +15,7 @@ import torch
 
 from s3o_warp.config import Config
 from s3o_warp.data import sequence
+from s3o_warp.data.flow import compute_flow
 from s3o_warp.errors import ConfigError, InputError
 
 
@@ -123,7 +124,7 @@ def prepare_data(sequence_dir: Path, cfg: Config, run_dir: Path, device: torch.d
         imgs[k] = crop.image
         mask_crops[k] = crop.mask
         c2f[k] = crop.crop_to_frame
-    flow = sequence.compute_flow(seq, run_dir / "cache", cfg.data)
+    flow = compute_flow(seq, run_dir / "cache", cfg.data)
     dev = dict(device=device)
     return FitData(
         name=seq.name,

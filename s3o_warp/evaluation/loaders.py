@@ -23,7 +23,7 @@ import numpy as np
 from pxr import Usd, UsdGeom, UsdSkel
 
 from s3o_warp.data.io import read_json
-from s3o_warp.data.sequence import read_mask
+from s3o_warp.data.masks import read_mask
 from s3o_warp.errors import InputError
 
 _USD_EXTS = (".usd", ".usda", ".usdc", ".usdz")

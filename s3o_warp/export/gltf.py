@@ -24,9 +24,11 @@ import os
 from pathlib import Path
 
 import numpy as np
+import pygltflib as g
 
+from s3o_warp.data.io import atomic_path
 from s3o_warp.errors import InputError
-from s3o_warp.export.rig import Rig, atomic_path, decompose_rigid, top_k_error, top_k_weights
+from s3o_warp.export.rig import Rig, decompose_rigid, top_k_error, top_k_weights, vertex_normals
 from s3o_warp.export.usd import ExportReport
 from s3o_warp.geometry import project_np
 
@@ -46,8 +48,6 @@ class _Blob:
         self.data = bytearray()
 
     def add(self, array: np.ndarray, target: int | None = None, minmax: bool = False) -> int:
-        import pygltflib as g
-
         a = np.ascontiguousarray(array)
         comp = {np.dtype(np.float32): _FLOAT, np.dtype(np.uint16): _USHORT, np.dtype(np.uint32): _UINT}[a.dtype]
         width = 1 if a.ndim == 1 else int(np.prod(a.shape[1:]))
@@ -83,7 +83,7 @@ def gltf_camera_error(rig: Rig, focal: float, cam: np.ndarray | None = None) -> 
 def export_gltf(rig: Rig, path: str | os.PathLike) -> ExportReport:
     """Write ``rig`` as a skinned, animated ``.glb`` with a camera node.
 
-    The file is written to a temporary sibling and renamed.
+    The file is written atomically (:mod:`s3o_warp.data.io`).
 
     Args:
         rig: the reconstruction to export.
@@ -96,8 +96,6 @@ def export_gltf(rig: Rig, path: str | os.PathLike) -> ExportReport:
     Raises:
         InputError: the extension is not ``.glb`` or the output folder does not exist.
     """
-    import pygltflib as g
-
     path = Path(path)
     if path.suffix.lower() != ".glb":
         raise InputError(f"{path}: a glTF export needs the extension .glb")
@@ -127,7 +125,6 @@ def export_gltf(rig: Rig, path: str | os.PathLike) -> ExportReport:
 
     # -------------------------------------------------------------- mesh
     g_rest = rig.verts.astype(np.float64) @ rig.world_from_object[:3, :3].T + rig.world_from_object[:3, 3]
-    from s3o_warp.export.usd import _vertex_normals
 
     idx, val = top_k_weights(rig.weights, k)
     joints0 = np.zeros((len(idx), 4), dtype=np.uint16)
@@ -136,7 +133,7 @@ def export_gltf(rig: Rig, path: str | os.PathLike) -> ExportReport:
     joints0[:, :k] = np.where(weights0[:, :k] > 0, joint_of_bone[idx], 0)  # the spec: unused slots point at joint 0
     attrs = g.Attributes(
         POSITION=blob.add(g_rest.astype(np.float32), _ARRAY_BUFFER, minmax=True),
-        NORMAL=blob.add(_vertex_normals(g_rest, rig.faces), _ARRAY_BUFFER),
+        NORMAL=blob.add(vertex_normals(g_rest, rig.faces), _ARRAY_BUFFER),
         COLOR_0=blob.add(np.clip(rig.colors, 0, 1).astype(np.float32), _ARRAY_BUFFER),
         JOINTS_0=blob.add(joints0, _ARRAY_BUFFER),
         WEIGHTS_0=blob.add(weights0, _ARRAY_BUFFER),

@@ -15,7 +15,7 @@ Frames used here:
   and the animated camera carries the root motion:
   ``camera_to_world(t) = world_from_object @ inv(root[t]) @ diag(1, -1, -1, 1)``.
 
-Run-directory files (``save_rig`` / ``load_rig``), each written to a temporary name and renamed:
+Run-directory files (``save_rig`` / ``load_rig``), each written atomically (:mod:`s3o_warp.data.io`):
 ``canonical.ply`` (mesh with vertex colours), ``skeleton.json`` (bones, joints, tree roots) and
 ``motion.npz`` (motion, camera, weights and the evaluation keys ``verts_cam``, ``faces``, ``K``,
 ``image_size``, ``frame_names`` and ``joints_cam`` that the metrics reader expects).
@@ -23,18 +23,18 @@ Run-directory files (``save_rig`` / ``load_rig``), each written to a temporary n
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import logging
 import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator
 
 import numpy as np
+import trimesh
+from scipy.spatial.transform import Rotation
 
+from s3o_warp.data.io import write_bytes, write_stream
 from s3o_warp.errors import InputError
 from s3o_warp.geometry import project_np
 
@@ -381,66 +381,6 @@ def max_distance(rig: Rig, a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     return err, err / max(rig.bbox_diagonal(), 1e-30)
 
 
-# --------------------------------------------------------------------- atomic writes
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def temp_path_for(path: Path) -> Path:
-    """Temporary sibling of ``path`` with the same extension: ``.NAME.tmp-PID.EXT``."""
-    path = Path(path)
-    return path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
-
-
-def _remove_stale_temps(path: Path) -> None:
-    """Remove temporary files of ``path`` left by processes that no longer run (killed writers)."""
-    pattern = re.compile(rf"^\.{re.escape(path.stem)}\.tmp-(\d+){re.escape(path.suffix)}$")
-    if not path.parent.is_dir():
-        return
-    for p in path.parent.iterdir():
-        m = pattern.match(p.name)
-        if m and int(m.group(1)) != os.getpid() and not _pid_alive(int(m.group(1))):
-            logger.info("removing %s, left by a writer that was killed", p)
-            with contextlib.suppress(OSError):
-                p.unlink()
-
-
-@contextlib.contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; on success rename it onto ``path``, else delete it.
-
-    A crash (exception) never replaces an existing good file and leaves no temporary file; a
-    killed process may leave ``.NAME.tmp-PID.EXT`` behind, which the next write removes.
-    """
-    path = Path(path)
-    if not path.parent.is_dir():
-        raise InputError(f"{path}: the output folder {path.parent} does not exist; create it or choose another path")
-    _remove_stale_temps(path)
-    tmp = temp_path_for(path)
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        raise
-
-
-def write_bytes_atomic(path: str | os.PathLike, writer: Callable[[io.BufferedWriter], None]) -> None:
-    """Write a file through ``writer(file)`` into a temporary name, fsync, then rename it."""
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            writer(f)
-            f.flush()
-            os.fsync(f.fileno())
-
-
 # --------------------------------------------------------------------- run directory
 def save_rig(run_dir: str | os.PathLike, rig: Rig) -> None:
     """Write ``canonical.ply``, ``skeleton.json`` and ``motion.npz`` of ``rig`` into ``run_dir``.
@@ -450,14 +390,12 @@ def save_rig(run_dir: str | os.PathLike, rig: Rig) -> None:
     ``K`` (T, 3, 3), ``image_size`` (2,) as (H, W), ``frame_names`` (T,) and, with joints,
     ``joints_cam`` (T, J, 3) float32.
     """
-    import trimesh
-
     run = Path(run_dir)
     run.mkdir(parents=True, exist_ok=True)
     rgba = np.concatenate([np.clip(np.round(rig.colors * 255), 0, 255), np.full((len(rig.verts), 1), 255)], 1)
     mesh = trimesh.Trimesh(rig.verts, rig.faces, vertex_colors=rgba.astype(np.uint8), process=False)
     ply = mesh.export(file_type="ply", encoding="binary")
-    write_bytes_atomic(run / "canonical.ply", lambda f: f.write(ply))
+    write_bytes(run / "canonical.ply", ply)
 
     bones = []
     for i, name in enumerate(rig.bone_names):
@@ -478,8 +416,7 @@ def save_rig(run_dir: str | os.PathLike, rig: Rig) -> None:
         "world_from_object": rig.world_from_object.tolist(),
         "frame": "object (OpenCV-like, y down); bind = rigid rest frame of each bone",
     }
-    text = json.dumps(skel, indent=1).encode()
-    write_bytes_atomic(run / "skeleton.json", lambda f: f.write(text))
+    write_bytes(run / "skeleton.json", json.dumps(skel, indent=1).encode())
 
     arrays = {
         "bone_motion": rig.bone_motion,
@@ -496,7 +433,7 @@ def save_rig(run_dir: str | os.PathLike, rig: Rig) -> None:
     jc = rig.joints_camera()
     if jc is not None:
         arrays["joints_cam"] = jc.astype(np.float32)
-    write_bytes_atomic(run / "motion.npz", lambda f: np.savez(f, **arrays))
+    write_stream(run / "motion.npz", lambda f: np.savez(f, **arrays))
     logger.info("saved rig (%d vertices, %d bones, %d frames) to %s", len(rig.verts), rig.num_bones, rig.num_frames, run)
 
 
@@ -508,8 +445,6 @@ def load_rig(run_dir: str | os.PathLike) -> Rig:
     Raises:
         InputError: a file is missing or malformed (the message names it).
     """
-    import trimesh
-
     run = Path(run_dir)
     for name in ("canonical.ply", "skeleton.json", "motion.npz"):
         if not (run / name).is_file():
@@ -564,6 +499,14 @@ def load_rig(run_dir: str | os.PathLike) -> Rig:
     )
 
 
+def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(N, 3) float32 unit area-weighted vertex normals (trimesh); +Y for vertices in no face."""
+    n = np.array(trimesh.Trimesh(points, faces, process=False).vertex_normals, dtype=np.float64)
+    bad = ~(np.abs(np.linalg.norm(n, axis=1) - 1.0) < 1e-3)  # vertices in no face: any unit vector
+    n[bad] = (0.0, 1.0, 0.0)
+    return n.astype(np.float32)
+
+
 def decompose_rigid(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Translations and unit quaternions of rigid transforms.
 
@@ -575,8 +518,6 @@ def decompose_rigid(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         of the last-but-one axis and sign continuity along it, so that interpolation between
         consecutive time samples takes the short way).
     """
-    from scipy.spatial.transform import Rotation
-
     shape = m.shape[:-2]
     q = Rotation.from_matrix(m[..., :3, :3].reshape(-1, 3, 3)).as_quat().reshape(*shape, 4)
     if q.ndim >= 2 and q.shape[0] > 1:  # time axis first: keep consecutive samples on one hemisphere

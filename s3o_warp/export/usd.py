@@ -25,10 +25,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from pxr import Gf, Usd, UsdGeom, UsdSkel, Vt
 from tqdm import tqdm
 
+from s3o_warp.data.io import atomic_path
 from s3o_warp.errors import InputError
-from s3o_warp.export.rig import Rig, atomic_path, decompose_rigid, dense_weights, max_distance, top_k_weights
+from s3o_warp.export.rig import Rig, decompose_rigid, dense_weights, max_distance, top_k_weights, vertex_normals
 
 logger = logging.getLogger(__name__)
 
@@ -59,14 +61,10 @@ class ExportReport:
 
 
 def _m4(m: np.ndarray):
-    from pxr import Gf
-
     return Gf.Matrix4d(*np.asarray(m, dtype=np.float64).T.flatten().tolist())
 
 
 def _m4_array(ms: np.ndarray):
-    from pxr import Vt
-
     return Vt.Matrix4dArray.FromNumpy(np.ascontiguousarray(np.swapaxes(ms, -1, -2), dtype=np.float64))
 
 
@@ -97,32 +95,18 @@ def camera_apertures(K: np.ndarray, image_size: tuple[int, int], horizontal_aper
     }
 
 
-def _vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(N, 3) float32 unit area-weighted vertex normals (trimesh); +Y for vertices in no face."""
-    import trimesh
-
-    n = np.array(trimesh.Trimesh(points, faces, process=False).vertex_normals, dtype=np.float64)
-    bad = ~(np.abs(np.linalg.norm(n, axis=1) - 1.0) < 1e-3)  # vertices in no face: any unit vector
-    n[bad] = (0.0, 1.0, 0.0)
-    return n.astype(np.float32)
-
-
 def _extent(points: np.ndarray):
-    from pxr import Vt
-
     return Vt.Vec3fArray.FromNumpy(np.stack([points.min(0), points.max(0)]).astype(np.float32))
 
 
 def _define_mesh(stage, path: str, rig: Rig, points: np.ndarray):
-    from pxr import UsdGeom, Vt
-
     mesh = UsdGeom.Mesh.Define(stage, path)
     mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
     mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
     mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(rig.faces), 3, dtype=np.int32)))
     mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(rig.faces.reshape(-1).astype(np.int32)))
     mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(points.astype(np.float32)))
-    mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(_vertex_normals(points, rig.faces)))
+    mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(vertex_normals(points, rig.faces)))
     mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
     mesh.CreateExtentAttr(_extent(points))
     mesh.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex).Set(Vt.Vec3fArray.FromNumpy(rig.colors.astype(np.float32)))
@@ -130,8 +114,6 @@ def _define_mesh(stage, path: str, rig: Rig, points: np.ndarray):
 
 
 def _define_camera(stage, path: str, rig: Rig, depth_range: tuple[float, float]):
-    from pxr import Gf, UsdGeom
-
     cam = UsdGeom.Camera.Define(stage, path)
     cam.CreateProjectionAttr(UsdGeom.Tokens.perspective)
     near, far = depth_range
@@ -167,8 +149,8 @@ def export_usd(
 ) -> ExportReport:
     """Write ``rig`` as a rigged, animated USD stage (``.usda`` text, ``.usdc``/``.usd`` binary).
 
-    The file is written to a temporary sibling with the same extension and renamed, so an
-    existing good file is never replaced by a half-written one.
+    The file is written atomically (:mod:`s3o_warp.data.io`), so an existing good file is never replaced by a
+    half-written one.
 
     Args:
         rig: the reconstruction to export.
@@ -185,8 +167,6 @@ def export_usd(
     Raises:
         InputError: bad extension, influences < 1, or a missing output folder.
     """
-    from pxr import Usd, UsdGeom, UsdSkel, Vt
-
     path = Path(path)
     if path.suffix.lower() not in USD_EXTENSIONS:
         raise InputError(f"{path}: a USD export needs the extension .usda, .usdc or .usd")
@@ -220,7 +200,7 @@ def export_usd(
         for t in tqdm(range(t_count), desc="USD baked frames", leave=False, disable=None):
             p = posed[t].astype(np.float32)
             pts_attr.Set(Vt.Vec3fArray.FromNumpy(p), t)
-            nrm_attr.Set(Vt.Vec3fArray.FromNumpy(_vertex_normals(posed[t], rig.faces)), t)
+            nrm_attr.Set(Vt.Vec3fArray.FromNumpy(vertex_normals(posed[t], rig.faces)), t)
             ext_attr.Set(_extent(p), t)
         err = (0.0, 0.0)
         k = rig.num_bones

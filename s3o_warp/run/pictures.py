@@ -3,12 +3,20 @@
 from __future__ import annotations
 
 import logging
-import os
 from pathlib import Path
 
 import cv2
+import matplotlib
 import numpy as np
 import torch
+import trimesh
+from matplotlib.figure import Figure
+from PIL import Image
+
+from s3o_warp.config import DataConfig
+from s3o_warp.data.io import atomic_path, write_image
+from s3o_warp.data.sequence import open_sequence
+from s3o_warp.kernels.raster import interpolate, rasterize
 
 from s3o_warp.geometry import project_np
 
@@ -17,8 +25,6 @@ log = logging.getLogger(__name__)
 
 def render_fit_frames(rig, chunk: int = 8):
     """Yield (face_index (H,W), colour (H,W,3) float) of the fitted mesh for every frame, full-frame size."""
-    from s3o_warp.kernels.raster import interpolate, rasterize
-
     verts = torch.as_tensor(rig.posed_camera(), dtype=torch.float32)
     faces = torch.as_tensor(rig.faces, dtype=torch.int64)
     K = torch.as_tensor(rig.K, dtype=torch.float32)
@@ -32,28 +38,30 @@ def render_fit_frames(rig, chunk: int = 8):
             yield fi[k].numpy(), col[k].numpy()
 
 
-def _write_video(frames: list[np.ndarray], path: Path, fps: float) -> Path:
-    """mp4 (OpenCV, mp4v) with a GIF fallback (Pillow); written to a temporary name, then renamed."""
-    h, w = frames[0].shape[:2]
-    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
-    vw = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
-    ok = vw.isOpened()
-    if ok:
-        for f in frames:
-            vw.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
-        vw.release()
-        ok = tmp.exists() and tmp.stat().st_size > 0
-    if ok:
-        os.replace(tmp, path)
-        return path
-    tmp.unlink(missing_ok=True)
-    from PIL import Image
+class _NoMp4(Exception):
+    """OpenCV cannot encode mp4 here: the GIF fallback is written instead."""
 
+
+def _write_video(frames: list[np.ndarray], path: Path, fps: float) -> Path:
+    """mp4 (OpenCV, mp4v) with a GIF fallback (Pillow); written atomically."""
+    h, w = frames[0].shape[:2]
+    try:
+        with atomic_path(path) as tmp:
+            vw = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
+            if not vw.isOpened():
+                raise _NoMp4
+            for f in frames:
+                vw.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
+            vw.release()
+            if not (tmp.exists() and tmp.stat().st_size > 0):
+                raise _NoMp4
+        return path
+    except _NoMp4:
+        pass
     gif = path.with_suffix(".gif")
-    tmpg = gif.with_name(gif.stem + ".tmp.gif")
     ims = [Image.fromarray(f) for f in frames]
-    ims[0].save(tmpg, save_all=True, append_images=ims[1:], duration=int(1000 / fps), loop=0)
-    os.replace(tmpg, gif)
+    with atomic_path(gif) as tmp:
+        ims[0].save(tmp, save_all=True, append_images=ims[1:], duration=int(1000 / fps), loop=0)
     return gif
 
 
@@ -106,26 +114,17 @@ def skeleton_overlay(run: Path, rig, sequence, fps: float = 24.0) -> list[Path]:
     if rig.joints is None or rig.joint_pairs is None or len(rig.joints) == 0:
         return []
     frames = [draw_skeleton(sequence.image(k), rig, k) for k in range(rig.num_frames)]
-    path = run / "renders" / "skeleton.png"
-    tmp = path.with_name("skeleton.tmp.png")
-    cv2.imwrite(str(tmp), cv2.cvtColor(frames[0], cv2.COLOR_RGB2BGR))
-    os.replace(tmp, path)
+    path = write_image(run / "renders" / "skeleton.png", frames[0])
     return [path, _write_video(frames, run / "renders" / "skeleton.mp4", fps)]
 
 
 def loss_plot(run: Path, history: list[dict]) -> Path | None:
     """Total loss and mask IoU per logged step, one colour per phase (PNG)."""
-    if not history:
-        return None
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     history = [h for h in history if "loss" in h]
     if not history:
         return None
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.5))
+    fig = Figure(figsize=(10, 3.5))  # no pyplot: no GUI backend, no global figure state
+    a1, a2 = fig.subplots(1, 2)
     x = 0
     for phase in dict.fromkeys(h["phase"] for h in history):
         hs = [h for h in history if h["phase"] == phase]
@@ -141,20 +140,15 @@ def loss_plot(run: Path, history: list[dict]) -> Path | None:
     a1.legend()
     fig.tight_layout()
     path = run / "renders" / "loss.png"
-    tmp = path.with_name("loss.tmp.png")
-    fig.savefig(tmp, format="png", dpi=90)
-    plt.close(fig)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=90)
     return path
 
 
 def write_renders(run: Path, rig, data, history, data_cfg=None) -> list[Path]:
     """All pictures of a run; returns their paths."""
-    from s3o_warp.data import sequence as video
-    from s3o_warp.config import DataConfig
-
     (Path(run) / "renders").mkdir(parents=True, exist_ok=True)
-    seq = video.open_sequence(data.sequence_dir, cfg=data_cfg or DataConfig(), **(data.open_kwargs or {}))
+    seq = open_sequence(data.sequence_dir, cfg=data_cfg or DataConfig(), **(data.open_kwargs or {}))
     paths = [overlay_video(Path(run), rig, seq, data.fps), loss_plot(Path(run), history)]
     paths += skeleton_overlay(Path(run), rig, seq, data.fps)
     paths += canonical_views(Path(run), rig, fps=data.fps)
@@ -179,8 +173,6 @@ def _look_from(direction: np.ndarray, centre: np.ndarray, dist: float, up: np.nd
 
 def bone_colors(weights: np.ndarray) -> np.ndarray:
     """Each vertex coloured by its dominant bone (argmax of the skinning weights), like the paper's Fig. 3."""
-    import matplotlib
-
     cmap = matplotlib.colormaps["tab20"]
     B = weights.shape[1]
     pal = np.array([cmap(i % 20)[:3] for i in range(B)])
@@ -190,15 +182,11 @@ def bone_colors(weights: np.ndarray) -> np.ndarray:
 def render_canonical(rig, view: np.ndarray, size: int = 256, draw_skeleton: bool = True,
                      colors: np.ndarray | None = None) -> np.ndarray:
     """The canonical (rest) mesh with vertex colours, Lambert-shaded, from an object->camera ``view`` (RGB)."""
-    from s3o_warp.kernels.raster import interpolate, rasterize
-
     v = rig.verts.astype(np.float64)
     cam = v @ view[:3, :3].T + view[:3, 3]
     ext = np.abs(cam[:, :2] / cam[:, 2:3]).max()
     f = 0.45 * size / max(ext, 1e-6)
     K = np.array([[f, 0, (size - 1) / 2], [0, f, (size - 1) / 2], [0, 0, 1]])
-    import trimesh
-
     normals = trimesh.Trimesh(v, rig.faces, process=False).vertex_normals @ view[:3, :3].T
     shade = np.clip(-normals[:, 2], 0, 1) * 0.7 + 0.3
     col = np.clip((rig.colors if colors is None else colors) * shade[:, None], 0, 1)
@@ -237,11 +225,7 @@ def canonical_views(run: Path, rig, fps: float = 24.0, turntable_frames: int = 3
     paths = []
     for name, direction, up in (("side", np.array([0.0, 0.0, 1.0]), -down), ("top", down, np.array([0.0, 0.0, 1.0]))):
         img = render_canonical(rig, _look_from(direction, centre, dist, up))
-        path = run / "renders" / f"canonical_{name}.png"
-        tmp = path.with_name(path.stem + ".tmp.png")
-        cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-        os.replace(tmp, path)
-        paths.append(path)
+        paths.append(write_image(run / "renders" / f"canonical_{name}.png", img))
     frames = []
     for k in range(turntable_frames):
         a = 2 * np.pi * k / turntable_frames
@@ -249,9 +233,5 @@ def canonical_views(run: Path, rig, fps: float = 24.0, turntable_frames: int = 3
         frames.append(render_canonical(rig, _look_from(direction, centre, dist, -down)))
     paths.append(_write_video(frames, run / "renders" / "turntable.mp4", fps))
     img = render_canonical(rig, _look_from(np.array([0.0, 0.0, 1.0]), centre, dist, -down), colors=bone_colors(rig.weights))
-    path = run / "renders" / "bones.png"
-    tmp = path.with_name("bones.tmp.png")
-    cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-    os.replace(tmp, path)
-    paths.append(path)
+    paths.append(write_image(run / "renders" / "bones.png", img))
     return paths

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..kernels.raster import interpolate, rasterize
 from .model import vertex_normals
 
 
@@ -83,8 +84,6 @@ def shade_chunk(verts_cam: np.ndarray, faces: np.ndarray, k: np.ndarray, cam_fro
         image uint8 (T, H, W, 3) RGB, mask bool (T, H, W), face_index int32 (T, H, W),
         depth float32 (T, H, W) camera z (0 on background).
     """
-    from ..kernels.raster import interpolate, rasterize
-
     num_t = verts_cam.shape[0]
     normals = vertex_normals(verts_cam, faces)
     v = torch.as_tensor(np.ascontiguousarray(verts_cam), dtype=torch.float32, device=device)

@@ -25,7 +25,8 @@ Folder layout (``out_dir``)::
     ground_truth/README.txt a copy of this layout description
 
 The fit never reads ``keypoints.json`` or ``ground_truth/``; they exist to score it. Everything is
-written into a temporary folder beside ``out_dir`` and renamed into place at the end.
+written into a temporary folder beside ``out_dir`` and renamed into place at the end
+(:func:`s3o_warp.data.io.atomic_dir`).
 """
 
 from __future__ import annotations
@@ -33,15 +34,13 @@ from __future__ import annotations
 import json
 import logging
 import os
-import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 from tqdm import tqdm
 
+from ..data.io import atomic_dir, write_image
 from ..errors import InputError
 from ..geometry import project_np
 from .camera import camera_path
@@ -143,13 +142,6 @@ def keypoint_visibility(kp_cam: np.ndarray, k: np.ndarray, face_index: np.ndarra
     return xy, vis & inside
 
 
-def _write_png(path: Path, img: np.ndarray) -> None:
-    if img.ndim == 3:
-        img = img[..., ::-1]
-    if not cv2.imwrite(str(path), np.ascontiguousarray(img)):
-        raise InputError(f"{path}: could not write the image; check the folder is writable")
-
-
 def make_sequence(out_dir: str | os.PathLike, source: str | os.PathLike = "quadruped", clip: str | None = None,
                   frames: int = 48, fps: float = 24.0, size: tuple[int, int] = (320, 240),
                   azim: tuple[float, float] = (-30.0, 30.0), elev: float = 10.0, seed: int = 0,
@@ -196,12 +188,7 @@ def make_sequence(out_dir: str | os.PathLike, source: str | os.PathLike = "quadr
     texture = SolidTexture(scale, seed)
     tol = shot.visibility_tol * scale
 
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
-    umask = os.umask(0)
-    os.umask(umask)
-    tmp.chmod(0o777 & ~umask)  # mkdtemp makes 0700; give the result the usual permissions
-    try:
+    with atomic_dir(out) as tmp:
         (tmp / "images").mkdir()
         (tmp / "masks").mkdir()
         (tmp / "ground_truth").mkdir()
@@ -215,8 +202,8 @@ def make_sequence(out_dir: str | os.PathLike, source: str | os.PathLike = "quadr
             xy, vis = keypoint_visibility(verts_cam[t0:t1][:, kp_vertex].astype(np.float64), k, face_index, depth, tol)
             for i in range(t1 - t0):
                 name = f"{t0 + i:06d}"
-                _write_png(tmp / "images" / f"{name}.png", image[i])
-                _write_png(tmp / "masks" / f"{name}.png", mask[i].astype(np.uint8) * 255)
+                write_image(tmp / "images" / f"{name}.png", image[i])
+                write_image(tmp / "masks" / f"{name}.png", mask[i].astype(np.uint8) * 255)
                 kp_frames[name] = [[round(float(x), 3), round(float(y), 3), int(v)]
                                    for (x, y), v in zip(xy[i], vis[i])]
             bar.update(t1 - t0)
@@ -233,15 +220,5 @@ def make_sequence(out_dir: str | os.PathLike, source: str | os.PathLike = "quadr
             rest_verts=mesh.rest_verts, colors=colors.astype(np.float32),
             source=np.array(mesh.source), clip=np.array(mesh.clip), seed=np.int64(seed))
         (tmp / "ground_truth" / "README.txt").write_text(__doc__ or "")
-        if out.exists():
-            old = out.with_name(f".{out.name}.old-{os.getpid()}")
-            out.rename(old)
-            tmp.rename(out)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            tmp.rename(out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     log.info("wrote %s: %d frames %dx%d of %s (%d keypoints)", out, num_t, w, h, mesh.source, len(kp_names))
     return out
