@@ -59,20 +59,22 @@ def _check_skeleton_shape(run, sequence, metrics):
     clip 3's front-left leg misses by 0.2 points. At ``tiny_sequence``'s size (64 px crops, 300 coarse
     vertices) the coarse mesh has no tail at all: it is 1-2 px thick there.
     """
-    from s3o_warp.evaluation import metrics as M
+    from s3o_warp.evaluation.loaders import load_ground_truth, load_predictions
+    from s3o_warp.evaluation.shape import Similarity, bbox_diagonal
+    from s3o_warp.evaluation.skeleton import chain_coverage, limb_coverage
 
-    pred, gt = M.load_predictions(run), M.load_ground_truth(sequence / "ground_truth")
+    pred, gt = load_predictions(run), load_ground_truth(sequence / "ground_truth")
     a = metrics["shape_3d"]["alignment"]
-    sim = M.Similarity(a["scale"], np.array(a["rotation"]), np.array(a["translation"]))
-    diag = M.bbox_diagonal(gt.verts)
+    sim = Similarity(a["scale"], np.array(a["rotation"]), np.array(a["translation"]))
+    diag = bbox_diagonal(gt.verts)
     names = list(gt.joint_names)
-    cov = M.limb_coverage(pred.joints_cam, gt.joints, gt.joint_parents, diag, sim, names, min_joints=1,
+    cov = limb_coverage(pred.joints_cam, gt.joints, gt.joint_parents, diag, sim, names, min_joints=1,
                           branch=False)
     need = {limb["limb"]: limb["tol_needed"] for limb in cov["limbs"]}
     head = [names.index(n) for n in ("head", "nose")]
-    need["nose"] = M.chain_coverage(pred.joints_cam, gt.joints, head, diag, sim, min_joints=1)["tol_needed"]
+    need["nose"] = chain_coverage(pred.joints_cam, gt.joints, head, diag, sim, min_joints=1)["tol_needed"]
     neck = [names.index(n) for n in ("withers", "neck", "head")]
-    need["neck"] = M.chain_coverage(pred.joints_cam, gt.joints, neck, diag, sim, min_joints=1)["tol_needed"]
+    need["neck"] = chain_coverage(pred.joints_cam, gt.joints, neck, diag, sim, min_joints=1)["tol_needed"]
     bounds = {"foot_fl": 0.08, "foot_fr": 0.08, "foot_bl": 0.08, "foot_br": 0.08, "tail_tip": 0.08, "neck": 0.08,
               "nose": 0.10}
     assert all(need[k] < b for k, b in bounds.items()), need
