@@ -13,7 +13,14 @@ import torch
 
 from s3o_warp.data.io import write_json
 from s3o_warp.evaluation.report import evaluate_run
-from s3o_warp.geometry import to_numpy
+from s3o_warp.export.gltf import export_gltf
+from s3o_warp.export.rig import Rig, save_rig
+from s3o_warp.export.usd import export_usd
+from s3o_warp.geometry import quat_to_matrix, to_numpy
+from s3o_warp.run import pictures
+from s3o_warp.skeleton.joints import bone_endpoints
+from s3o_warp.skeleton.measures import bone_lengths
+from s3o_warp.skeleton.mstep import joint_samples
 
 log = logging.getLogger(__name__)
 
@@ -28,9 +35,6 @@ def _h(rt: np.ndarray) -> np.ndarray:
 @torch.no_grad()
 def rig_from_model(fitter):
     """The fitted model as an ``export.rig.Rig`` (object frame = the coarse phase's canonical frame)."""
-    from s3o_warp.export.rig import Rig
-    from s3o_warp.geometry import quat_to_matrix
-
     m, d = fitter.model, fitter.data
     T, B = m.num_frames, m.num_bones
     frames = torch.arange(T, device=m.verts.device)
@@ -47,10 +51,6 @@ def rig_from_model(fitter):
         joints = np.asarray(sk.joint_positions, dtype=np.float64)
     lengths = None
     if pairs is not None:
-        from s3o_warp.skeleton.joints import bone_endpoints
-        from s3o_warp.skeleton.measures import bone_lengths
-        from s3o_warp.skeleton.mstep import joint_samples
-
         X, Wn = to_numpy(m.verts), to_numpy(W)
         lengths = bone_lengths(bone_endpoints(X, Wn, pairs, t_r=fitter.cfg.skeleton.t_r, samples=joint_samples(m)), X)
     return Rig(
@@ -77,16 +77,11 @@ def rig_from_model(fitter):
 
 def write_run(fitter) -> dict:
     """Write rig files, USD + glb, metrics.json and renders/ for a finished fit; return the metrics."""
-    from s3o_warp.export.rig import save_rig
-
     run = Path(fitter.run_dir)
     rig = rig_from_model(fitter)
     save_rig(run, rig)
     name = fitter.data.name
     try:
-        from s3o_warp.export.gltf import export_gltf
-        from s3o_warp.export.usd import export_usd
-
         export_usd(rig, run / f"{name}.usdc")
         export_gltf(rig, run / f"{name}.glb")
     except ImportError as e:  # pragma: no cover - the exporter is part of the package
@@ -98,7 +93,5 @@ def write_run(fitter) -> dict:
     metrics["seconds"] = round(fitter.history[-1]["seconds"], 2) if fitter.history else None
     write_json(run / "metrics.json", metrics)
     if fitter.cfg.output.render_video:
-        from s3o_warp.run import pictures
-
         pictures.write_renders(run, rig, fitter.data, fitter.history, fitter.cfg.data)
     return metrics
