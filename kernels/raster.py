@@ -22,7 +22,10 @@ import torch
 import warp as wp
 
 from ._warp import check_float, check_shape, same_device, stream_of, to_wp, wp_device
-from .raster_backward import soft_silhouette_grad_kernel, soft_silhouette_grad_naive_kernel
+from .raster_backward import (
+    soft_silhouette_grad_kernel,
+    soft_silhouette_grad_naive_kernel,
+)
 from .raster_forward import (
     count_tile_faces_kernel,
     fill_tile_faces_kernel,

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 import types
 import typing
 from dataclasses import dataclass, field
@@ -18,9 +17,10 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import tomli_w
+import tomllib
 
-from s3o_warp.errors import ConfigError
 from s3o_warp.data.io import write_bytes
+from s3o_warp.errors import ConfigError
 
 
 @dataclass(frozen=True)

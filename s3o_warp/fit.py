@@ -34,25 +34,42 @@ import torch
 import warp as wp
 from tqdm import tqdm
 
-from s3o_warp.coarse.model import (COARSE_SIGMA, COARSE_SIGMA_FINAL, CoarseResult, coarse_model, coarse_terms,
-                                   refit_bones_to_parts)
+from s3o_warp import resample
+from s3o_warp.coarse.model import (
+    COARSE_SIGMA,
+    COARSE_SIGMA_FINAL,
+    CoarseResult,
+    coarse_model,
+    coarse_terms,
+    refit_bones_to_parts,
+)
 from s3o_warp.config import Config, check, save_toml, to_dict
 from s3o_warp.data.io import copy_file
 from s3o_warp.data.store import FitData, prepare_data
 from s3o_warp.errors import InputError
 from s3o_warp.kernels import _warp
-from s3o_warp.kernels.regularisers import mesh_edges
 from s3o_warp.model import S3OModel
 from s3o_warp.motion import objective
 from s3o_warp.motion.crossings import resolve_model_crossings
 from s3o_warp.motion.hypotheses import select_hypothesis
 from s3o_warp.motion.losses import soft_iou
 from s3o_warp.motion.windows import FrameWindows
-from s3o_warp import resample
+from s3o_warp.ops import mesh_edges
 from s3o_warp.run import outputs
 from s3o_warp.run.branch import BRANCH_LOG, branch_checkpoint, link_cache, save_branch
-from s3o_warp.run.checkpoint import CHECKPOINT_VERSION, check_version, latest_checkpoint, save_step
-from s3o_warp.skeleton.mstep import SkeletonState, m_step, prune_empty_bones, refresh_joints, virtual_bones_init
+from s3o_warp.run.checkpoint import (
+    CHECKPOINT_VERSION,
+    check_version,
+    latest_checkpoint,
+    save_step,
+)
+from s3o_warp.skeleton.mstep import (
+    SkeletonState,
+    m_step,
+    prune_empty_bones,
+    refresh_joints,
+    virtual_bones_init,
+)
 
 log = logging.getLogger(__name__)
 

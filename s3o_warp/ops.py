@@ -4,8 +4,21 @@ Shapes: T frames, V/N vertices, F faces, B bones, E edges, H x W image. Camera s
 (+x right, +y down, +z forward); the centre of pixel (c, r) is at (c, r). See each op's docstring.
 """
 
-from s3o_warp.kernels.raster import interpolate, rasterize, soft_silhouette, soft_silhouette_naive
-from s3o_warp.kernels.regularisers import arap_loss, dynamic_rigidity_loss, laplacian_loss, mesh_edges, symmetry_loss
+from s3o_warp.kernels.nearest import nearest_point
+from s3o_warp.kernels.raster import (
+    interpolate,
+    rasterize,
+    soft_silhouette,
+    soft_silhouette_naive,
+)
+from s3o_warp.kernels.regularisers import (
+    arap_loss,
+    dynamic_rigidity_loss,
+    laplacian_loss,
+    mesh_edges,
+    symmetry_loss,
+)
+from s3o_warp.kernels.sdf import closest_point, ray_hit
 from s3o_warp.kernels.skinning import blend_skinning, skinning_weights
 from s3o_warp.kernels.visibility import VisibilityContext, vertex_visibility
 
@@ -13,11 +26,14 @@ __all__ = [
     "VisibilityContext",
     "arap_loss",
     "blend_skinning",
+    "closest_point",
     "dynamic_rigidity_loss",
     "interpolate",
     "laplacian_loss",
     "mesh_edges",
+    "nearest_point",
     "rasterize",
+    "ray_hit",
     "skinning_weights",
     "soft_silhouette",
     "soft_silhouette_naive",

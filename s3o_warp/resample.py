@@ -42,7 +42,7 @@ from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
 from s3o_warp.errors import ConfigError, InputError
-from s3o_warp.kernels.sdf import closest_point
+from s3o_warp.ops import closest_point
 
 log = logging.getLogger(__name__)
 

@@ -21,9 +21,9 @@ from pathlib import Path
 
 import torch
 import trimesh
+from s3o_warp.kernels import nearest, raster, regularisers, skinning, visibility
 
 from s3o_warp.data.io import write_text
-from s3o_warp.kernels import nearest, raster, regularisers, skinning, visibility
 from s3o_warp.provenance import REPO, git_commit, versions
 from s3o_warp.reference import nearest as rnear
 from s3o_warp.reference import raster as rraster

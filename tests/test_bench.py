@@ -69,9 +69,8 @@ def test_a_rows_resamplings_say_which_were_used_and_how(tmp_path):
 def test_bench_flows_true_flow_is_the_surface_points_motion():
     """bench_flow's reference: each foreground pixel's surface point, carried to the next frame and projected.
     A square facing the camera moves across and away: the flow is that of the back-projected pixel centres."""
-    import numpy as np
-
     import bench_flow
+    import numpy as np
 
     K = np.array([[100.0, 0, 31.5], [0, 100.0, 23.5], [0, 0, 1]])
     sq = np.array([[-0.4, -0.3, 4.0], [0.4, -0.3, 4.0], [0.4, 0.3, 4.0], [-0.4, 0.3, 4.0]])

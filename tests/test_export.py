@@ -18,7 +18,15 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from s3o_warp.errors import InputError
-from s3o_warp.export import Rig, camera_apertures, export_gltf, export_usd, load_rig, save_rig, top_k_error
+from s3o_warp.export import (
+    Rig,
+    camera_apertures,
+    export_gltf,
+    export_usd,
+    load_rig,
+    save_rig,
+    top_k_error,
+)
 from s3o_warp.export import usd as usd_mod
 from s3o_warp.export.rig import dense_weights, top_k_weights
 
@@ -428,7 +436,10 @@ def test_joints_move_like_the_surface_at_their_rest_position():
 
     import torch
 
-    from s3o_warp.reference.skinning import blend_skinning_reference, skinning_weights_reference
+    from s3o_warp.reference.skinning import (
+        blend_skinning_reference,
+        skinning_weights_reference,
+    )
 
     rig = chain_rig()
     t = lambda a: torch.as_tensor(np.asarray(a, np.float64))  # noqa: E731

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from s3o_warp.kernels.sdf import closest_point
 
 from s3o_warp.errors import ConfigError, InputError
-from s3o_warp.kernels.sdf import closest_point
 from s3o_warp.reference.sdf import closest_on_faces_naive, closest_point_naive
 from s3o_warp.resample import ResampleSettings, even_resample
 
@@ -406,6 +406,7 @@ def test_resample_settings_validation():
 
 def test_ray_hit_matches_naive(device):
     from s3o_warp.kernels.sdf import ray_hit
+
     from s3o_warp.reference.sdf import ray_hit_naive
 
     verts, faces = _rotated_sphere(2, seed=4)

@@ -16,7 +16,12 @@ import numpy as np
 import trimesh
 from skimage.measure import marching_cubes
 
-from s3o_warp.coarse.skeleton2d import ENDPOINT, CoarseSettings, Skeleton2D, symmetric_pairs
+from s3o_warp.coarse.skeleton2d import (
+    ENDPOINT,
+    CoarseSettings,
+    Skeleton2D,
+    symmetric_pairs,
+)
 from s3o_warp.errors import InputError
 from s3o_warp.geometry import project_np
 

@@ -18,12 +18,11 @@ import torch
 from s3o_warp.coarse import lift, skeleton2d
 from s3o_warp.config import CoarseConfig, Config
 from s3o_warp.data.store import FitData
-from s3o_warp.kernels.raster import soft_silhouette
-from s3o_warp.kernels.regularisers import laplacian_loss, symmetry_loss
 from s3o_warp.model import ModelInit, S3OModel, root_for_shared_principal_point
 from s3o_warp.motion import losses as L
 from s3o_warp.motion.crossings import LimbPair
 from s3o_warp.motion.objective import TermContext
+from s3o_warp.ops import laplacian_loss, soft_silhouette, symmetry_loss
 from s3o_warp.skeleton.edit import fit_bones_to_parts, precision_to_quat_scales
 
 log = logging.getLogger(__name__)

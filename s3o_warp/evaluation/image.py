@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
 from s3o_warp.geometry import project_np
-from s3o_warp.kernels.raster import rasterize
+from s3o_warp.ops import rasterize
 
 
 def render_frames(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, image_size: tuple[int, int],

@@ -17,10 +17,27 @@ import numpy as np
 
 from s3o_warp.data.io import write_json
 from s3o_warp.errors import InputError
-from s3o_warp.evaluation.image import mask_iou, pck_transfer, render_frames, surface_under_keypoints
-from s3o_warp.evaluation.loaders import GroundTruth, load_ground_truth, load_keypoints, load_masks, load_predictions
+from s3o_warp.evaluation.image import (
+    mask_iou,
+    pck_transfer,
+    render_frames,
+    surface_under_keypoints,
+)
+from s3o_warp.evaluation.loaders import (
+    GroundTruth,
+    load_ground_truth,
+    load_keypoints,
+    load_masks,
+    load_predictions,
+)
 from s3o_warp.evaluation.shape import bbox_diagonal, frame_similarities, shape_metrics
-from s3o_warp.evaluation.skeleton import empty_bones, joints_inside, limb_coverage, limb_identity, skeleton_distance
+from s3o_warp.evaluation.skeleton import (
+    empty_bones,
+    joints_inside,
+    limb_coverage,
+    limb_identity,
+    skeleton_distance,
+)
 
 log = logging.getLogger(__name__)
 

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from s3o_warp.evaluation.shape import Similarity
-from s3o_warp.kernels.sdf import closest_point
+from s3o_warp.ops import closest_point
 from s3o_warp.skeleton.measures import assign_parts
 
 

@@ -28,7 +28,13 @@ import pygltflib as g
 
 from s3o_warp.data.io import atomic_path
 from s3o_warp.errors import InputError
-from s3o_warp.export.rig import Rig, decompose_rigid, top_k_error, top_k_weights, vertex_normals
+from s3o_warp.export.rig import (
+    Rig,
+    decompose_rigid,
+    top_k_error,
+    top_k_weights,
+    vertex_normals,
+)
 from s3o_warp.export.usd import ExportReport
 from s3o_warp.geometry import project_np
 

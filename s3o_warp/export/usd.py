@@ -30,7 +30,14 @@ from tqdm import tqdm
 
 from s3o_warp.data.io import atomic_path
 from s3o_warp.errors import InputError
-from s3o_warp.export.rig import Rig, decompose_rigid, dense_weights, max_distance, top_k_weights, vertex_normals
+from s3o_warp.export.rig import (
+    Rig,
+    decompose_rigid,
+    dense_weights,
+    max_distance,
+    top_k_weights,
+    vertex_normals,
+)
 
 logger = logging.getLogger(__name__)
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 
 from s3o_warp.geometry import project
-from s3o_warp.kernels.nearest import nearest_point
+from s3o_warp.ops import nearest_point
 
 
 def silhouette_loss(sil: torch.Tensor, mask: torch.Tensor, frame_weight: torch.Tensor | None = None) -> torch.Tensor:

@@ -19,10 +19,17 @@ import torch
 from s3o_warp.config import MotionConfig
 from s3o_warp.data.store import FitData
 from s3o_warp.geometry import project
-from s3o_warp.kernels.raster import interpolate, rasterize, soft_silhouette
-from s3o_warp.kernels.regularisers import arap_loss, dynamic_rigidity_loss, laplacian_loss, symmetry_loss
 from s3o_warp.model import S3OModel
 from s3o_warp.motion import losses as L
+from s3o_warp.ops import (
+    arap_loss,
+    dynamic_rigidity_loss,
+    interpolate,
+    laplacian_loss,
+    rasterize,
+    soft_silhouette,
+    symmetry_loss,
+)
 
 COVER_PIXELS = 256
 """Uncovered mask pixels sampled per frame for the coverage loss (0 = all)."""

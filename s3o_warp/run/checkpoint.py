@@ -6,7 +6,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-
 from s3o_warp.data.io import torch_save
 from s3o_warp.errors import InputError
 

@@ -16,9 +16,8 @@ from PIL import Image
 from s3o_warp.config import DataConfig
 from s3o_warp.data.io import atomic_path, write_image
 from s3o_warp.data.sequence import open_sequence
-from s3o_warp.kernels.raster import interpolate, rasterize
-
 from s3o_warp.geometry import project_np
+from s3o_warp.ops import interpolate, rasterize
 
 log = logging.getLogger(__name__)
 

@@ -22,7 +22,15 @@ import numpy as np
 import torch
 
 from s3o_warp.geometry import axis_angle_to_matrix, matrix_to_quat
-from s3o_warp.skeleton.measures import _bones_in, _check, _diameter, _np, assign_parts, children_of, part_extents
+from s3o_warp.skeleton.measures import (
+    _bones_in,
+    _check,
+    _diameter,
+    _np,
+    assign_parts,
+    children_of,
+    part_extents,
+)
 
 log = logging.getLogger(__name__)
 

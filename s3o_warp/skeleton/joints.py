@@ -13,10 +13,14 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from s3o_warp.kernels.sdf import closest_point, ray_hit
-from s3o_warp.skeleton.edit import DEFAULT_SHARPNESS, SkeletonEdit, _apply_splits, _identity_edit
+from s3o_warp.ops import closest_point, ray_hit
+from s3o_warp.skeleton.edit import (
+    DEFAULT_SHARPNESS,
+    SkeletonEdit,
+    _apply_splits,
+    _identity_edit,
+)
 from s3o_warp.skeleton.measures import _bones_in, _check, _np, assign_parts, size_of
-
 
 # ---------------------------------------------------------------------------------------------------
 # joint positions (paper 3.4, t_r)

@@ -25,8 +25,8 @@ import numpy as np
 import torch
 from scipy.cluster.vq import kmeans2
 
-from s3o_warp.kernels.visibility import vertex_visibility
 from s3o_warp.motion.losses import vertex_flow_crop
+from s3o_warp.ops import vertex_visibility
 from s3o_warp.skeleton.edit import (
     DEFAULT_SHARPNESS,
     SkeletonEdit,

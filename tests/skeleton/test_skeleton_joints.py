@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from s3o_warp.kernels.skinning import skinning_weights
 from skeleton_cases import chain
 
 from s3o_warp.geometry import axis_angle_to_matrix
-from s3o_warp.kernels.skinning import skinning_weights
 from s3o_warp.skeleton.edit import shift_bones
 from s3o_warp.skeleton.joints import (
     bone_endpoints,
@@ -20,8 +20,13 @@ from s3o_warp.skeleton.joints import (
     split_at_joints,
     surface_samples,
 )
-from s3o_warp.skeleton.measures import assign_parts, bone_lengths, bone_lengths_per_frame, create_joints, tree_joints
-
+from s3o_warp.skeleton.measures import (
+    assign_parts,
+    bone_lengths,
+    bone_lengths_per_frame,
+    create_joints,
+    tree_joints,
+)
 
 # -------------------------------------------------------------------------------------------------
 # joint positions

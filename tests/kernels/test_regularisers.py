@@ -5,7 +5,6 @@ from __future__ import annotations
 import pytest
 import torch
 import trimesh
-
 from s3o_warp.kernels.regularisers import (
     arap_loss,
     dynamic_rigidity_loss,
@@ -13,6 +12,7 @@ from s3o_warp.kernels.regularisers import (
     mesh_edges,
     symmetry_loss,
 )
+
 from s3o_warp.reference.regularisers import (
     arap_loss_reference,
     dynamic_rigidity_loss_reference,

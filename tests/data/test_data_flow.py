@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 import torch
-
 from data_frames import H, W, rect_mask, shift, texture, write_seq
+
 from s3o_warp.config import DataConfig
 from s3o_warp.data import flow as flow_mod
 from s3o_warp.data.crops import crop_frame, map_points

@@ -15,17 +15,14 @@ import numpy as np
 import pytest
 import trimesh
 
-from s3o_warp.coarse import (
+from s3o_warp.coarse.lift import ellipsoid_field, ellipsoid_union_mesh, init_bones, lift_to_3d
+from s3o_warp.coarse.skeleton2d import (
     ENDPOINT,
     JUNCTION,
     CoarseSettings,
     canonical_frame,
-    ellipsoid_field,
-    ellipsoid_union_mesh,
-    init_bones,
     leg_pairs,
     leg_stride,
-    lift_to_3d,
     part_masks,
     skeleton_2d,
     symmetric_pairs,

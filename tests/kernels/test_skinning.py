@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import pytest
 import torch
-
 from s3o_warp.kernels import skinning as skin_mod
 from s3o_warp.kernels.skinning import blend_skinning, skinning_weights
-from s3o_warp.reference.skinning import blend_skinning_reference, skinning_weights_reference
+
+from s3o_warp.reference.skinning import (
+    blend_skinning_reference,
+    skinning_weights_reference,
+)
 
 
 def _rotation(n: int, gen: torch.Generator) -> torch.Tensor:

@@ -8,9 +8,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from data_frames import H, W, listing, rect_mask, shift, texture, write_seq
 from PIL import Image
 
-from data_frames import H, W, listing, rect_mask, shift, texture, write_seq
 from s3o_warp.config import DataConfig
 from s3o_warp.data import sequence
 from s3o_warp.data.flow import compute_flow

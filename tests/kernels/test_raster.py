@@ -7,8 +7,13 @@ import math
 import pytest
 import torch
 import trimesh
+from s3o_warp.kernels.raster import (
+    interpolate,
+    rasterize,
+    soft_silhouette,
+    soft_silhouette_naive,
+)
 
-from s3o_warp.kernels.raster import interpolate, rasterize, soft_silhouette, soft_silhouette_naive
 from s3o_warp.reference.raster import (
     interpolate_reference,
     rasterize_reference,

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 import torch
 from eval_scene import H, W, naive_pckt, tiny_motion, two_box_sequence
+from s3o_warp.kernels.raster import rasterize
 
 from s3o_warp.data.keypoints import write_keypoints
 from s3o_warp.errors import InputError
@@ -25,10 +26,9 @@ from s3o_warp.evaluation.report import _pair_frames, evaluate_run, format_table
 from s3o_warp.export.rig import Rig, save_rig
 from s3o_warp.export.usd import export_usd
 from s3o_warp.geometry import project_np
-from s3o_warp.kernels.raster import rasterize
 from s3o_warp.synth.sequence import make_sequence
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _render(verts, faces, K):

@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 import trimesh
-
 from s3o_warp.kernels import visibility as vis_mod
 from s3o_warp.kernels.visibility import VisibilityContext, vertex_visibility
+
 from s3o_warp.reference.regularisers import vertex_visibility_reference
 
 

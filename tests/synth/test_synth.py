@@ -28,7 +28,7 @@ from s3o_warp.synth import (
 from s3o_warp.synth.gltf import sample_channel
 from s3o_warp.synth.quadruped import forward_kinematics
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

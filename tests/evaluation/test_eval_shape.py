@@ -9,8 +9,14 @@ import numpy as np
 import pytest
 from eval_scene import rot, two_box_sequence
 
-from s3o_warp.evaluation.shape import (bbox_diagonal, chamfer_fscore, frame_similarities, sample_surface,
-                                       shape_metrics, umeyama)
+from s3o_warp.evaluation.shape import (
+    bbox_diagonal,
+    chamfer_fscore,
+    frame_similarities,
+    sample_surface,
+    shape_metrics,
+    umeyama,
+)
 from s3o_warp.evaluation.skeleton import skeleton_distance
 
 

@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 import torch
-
 from data_frames import H, W, rect_mask, write_seq
+
 from s3o_warp.data.crops import (
     crop_frame,
     crop_transform,

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from data_frames import H, W, write_seq
 from PIL import Image
 
-from data_frames import H, W, write_seq
 from s3o_warp.config import DataConfig
 from s3o_warp.data.masks import largest_component
 from s3o_warp.data.sequence import open_sequence

@@ -5,6 +5,7 @@ import pytest
 import torch
 from conftest import smoke_config
 
+from s3o_warp.geometry import axis_angle_to_matrix, matrix_to_axis_angle
 from s3o_warp.motion.crossings import (
     LimbPair,
     crossing_labels,
@@ -12,7 +13,6 @@ from s3o_warp.motion.crossings import (
     exchanged_motion,
     resolve_crossings,
 )
-from s3o_warp.geometry import axis_angle_to_matrix, matrix_to_axis_angle
 
 S = np.diag([1.0, 1.0, -1.0])
 

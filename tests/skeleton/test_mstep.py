@@ -7,7 +7,6 @@ import numpy as np
 from s3o_warp.skeleton.edit import DEFAULT_SHARPNESS
 from s3o_warp.skeleton.mstep import virtual_bones
 
-
 # -------------------------------------------------------------------------------------------------
 # LASR-like baseline
 # -------------------------------------------------------------------------------------------------

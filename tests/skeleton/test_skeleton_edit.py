@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from s3o_warp.kernels.skinning import skinning_weights
 from skeleton_cases import chain, hard_weights, segment_cloud
 
 from s3o_warp.geometry import axis_angle_to_matrix, matrix_to_quat, quat_to_matrix
-from s3o_warp.kernels.skinning import skinning_weights
 from s3o_warp.skeleton.edit import (
     fit_bones_to_parts,
     grow_skeleton,
@@ -21,8 +21,12 @@ from s3o_warp.skeleton.edit import (
     upsample_skeleton,
 )
 from s3o_warp.skeleton.joints import bone_endpoints, parent_anchors
-from s3o_warp.skeleton.measures import bone_lengths, motion_similarity, part_extents, tree_joints
-
+from s3o_warp.skeleton.measures import (
+    bone_lengths,
+    motion_similarity,
+    part_extents,
+    tree_joints,
+)
 
 # -------------------------------------------------------------------------------------------------
 # merging (eqs. 8-9) and pruning

@@ -15,7 +15,6 @@ from s3o_warp.model import ModelInit, S3OModel
 from s3o_warp.skeleton.edit import grow_skeleton, shift_bones, upsample_skeleton
 from s3o_warp.skeleton.remap import apply_edit, remap_bones
 
-
 # -------------------------------------------------------------------------------------------------
 # model surgery
 # -------------------------------------------------------------------------------------------------

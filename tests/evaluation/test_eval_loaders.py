@@ -10,11 +10,19 @@ import pytest
 from eval_scene import tiny_motion
 from scipy.ndimage import distance_transform_edt
 
-from s3o_warp.data.keypoints import BADJA_ANNOTATED, BADJA_JOINT_NAMES, badja_to_keypoints
+from s3o_warp.data.keypoints import (
+    BADJA_ANNOTATED,
+    BADJA_JOINT_NAMES,
+    badja_to_keypoints,
+)
 from s3o_warp.data.keypoints import main as badja_main
 from s3o_warp.data.masks import read_mask
 from s3o_warp.errors import InputError
-from s3o_warp.evaluation.loaders import load_ground_truth, load_keypoints, load_predictions
+from s3o_warp.evaluation.loaders import (
+    load_ground_truth,
+    load_keypoints,
+    load_predictions,
+)
 
 
 def test_bad_prediction_files(tmp_path):

@@ -8,8 +8,14 @@ import pytest
 import trimesh
 
 from s3o_warp.evaluation.shape import Similarity
-from s3o_warp.evaluation.skeleton import (empty_bones, gt_limbs, joints_inside, limb_coverage, limb_identity,
-                                          skeleton_distance)
+from s3o_warp.evaluation.skeleton import (
+    empty_bones,
+    gt_limbs,
+    joints_inside,
+    limb_coverage,
+    limb_identity,
+    skeleton_distance,
+)
 
 
 def test_skeleton_distance_against_loops():

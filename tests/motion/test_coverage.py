@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 import torch
-
 from s3o_warp.kernels.nearest import nearest_point
+
 from s3o_warp.motion.losses import coverage_loss
 from s3o_warp.reference.nearest import nearest_point_reference
 
