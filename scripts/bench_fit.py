@@ -5,7 +5,7 @@
                                 [--seeds 0 1 2] [--preset default] [--set key=value ...] [--out-dir DIR]
 
 Cases: ``quadruped`` (the built-in default shot, the README's main command), ``fox`` (Khronos Fox Walk,
-48 frames, 320x240, 90-degree orbit, issue 4), ``fox120`` (the same clip with a 120-degree orbit, issue 5), ``horse`` (Quaternius Horse Walk, 48 frames, 320x240, 120-degree
+48 frames, 320x240, 90-degree orbit), ``fox120`` (the same clip with a 120-degree orbit), ``horse`` (Quaternius Horse Walk, 48 frames, 320x240, 120-degree
 orbit), ``cows`` / ``dog`` (DAVIS with BADJA keypoints). Cases that need ../shared/data skip with a
 message when it is absent. Each fit's metrics, per-phase wall time (from log.jsonl) and total time
 are recorded with the command, device, versions and git commit. Results are merged into the JSON file

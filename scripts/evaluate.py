@@ -40,7 +40,7 @@ def main(argv=None) -> int:
                          "count once")
     ap.add_argument("--no-limb-tips", action="store_true",
                     help="limb counts stop at each limb's end joint instead of going on to its tip (the ground "
-                         "truth's <joint>_tip keypoint; the reading of rows before session 30)")
+                         "truth's <joint>_tip keypoint; how the older rows of benchmarks/fit-cpu.json were scored)")
     ap.add_argument("--out", help="where to write metrics.json (default: RUN_DIR/metrics.json)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
