@@ -19,7 +19,6 @@ from typing import Annotated, Literal
 import tomli_w
 import tomllib
 
-from s3o_warp.data.io import write_bytes
 from s3o_warp.errors import ConfigError
 
 
@@ -427,6 +426,6 @@ def make_config(preset: str = "default", toml_path=None, overrides: list[str] | 
     return check(cfg)
 
 
-def save_toml(cfg, path) -> None:
-    """Write every resolved setting to ``path`` atomically (temp name + rename)."""
-    write_bytes(path, tomli_w.dumps(to_dict(cfg)).encode())
+def to_toml(cfg) -> str:
+    """Every resolved setting as TOML text (a run's ``config.toml``; :func:`make_config` reads it back)."""
+    return tomli_w.dumps(to_dict(cfg))

@@ -43,8 +43,8 @@ from s3o_warp.coarse.model import (
     coarse_terms,
     refit_bones_to_parts,
 )
-from s3o_warp.config import Config, check, save_toml, to_dict
-from s3o_warp.data.io import copy_file
+from s3o_warp.config import Config, check, to_dict, to_toml
+from s3o_warp.data.io import copy_file, write_text
 from s3o_warp.data.store import FitData, prepare_data
 from s3o_warp.errors import InputError
 from s3o_warp.kernels import _warp
@@ -549,7 +549,7 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise InputError(f"run directory {out_dir} cannot be created ({e.strerror}); choose another --out") from None
-    save_toml(cfg, out_dir / "config.toml")
+    write_text(out_dir / "config.toml", to_toml(cfg))
     with repeatable(cfg.repeatable and device.type == "cpu"):
         coarse_res = coarse_model(data, cfg)
         fitter = Fitter(data, coarse_res, cfg, out_dir, device)
