@@ -144,13 +144,20 @@ def write_json(path, obj, indent: int | None = 2) -> Path:
     return write_text(path, json.dumps(obj, indent=indent) + "\n")
 
 
-def write_image(path, image: np.ndarray) -> Path:
-    """``path`` holds ``image`` (``(H, W, 3)`` uint8 RGB or ``(H, W)`` grey), in the format its suffix names (PNG,
-    JPEG...), written atomically."""
+def imwrite(path, image: np.ndarray, name=None) -> Path:
+    """Write ``image`` (``(H, W, 3)`` uint8 RGB or ``(H, W)`` grey) to ``path`` as it stands, in the format its suffix
+    names (PNG, JPEG...): for files inside a folder that :func:`atomic_dir` renames into place as a whole.
+    ``name``: the path an error names (default ``path``)."""
     img = np.ascontiguousarray(image[..., ::-1] if image.ndim == 3 else image)
+    if not cv2.imwrite(str(path), img):
+        raise InputError(f"{name or path}: could not write the image; check the folder is writable")
+    return Path(path)
+
+
+def write_image(path, image: np.ndarray) -> Path:
+    """``path`` holds ``image`` (as :func:`imwrite` takes it), written atomically."""
     with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), img):
-            raise InputError(f"{path}: could not write the image; check the folder is writable")
+        imwrite(tmp, image, name=path)
     return Path(path)
 
 

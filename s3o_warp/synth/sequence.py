@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ..data.io import atomic_dir, write_image
+from ..data.io import atomic_dir, imwrite
 from ..errors import InputError
 from ..geometry import project_np
 from .camera import camera_path
@@ -202,8 +202,8 @@ def make_sequence(out_dir: str | os.PathLike, source: str | os.PathLike = "quadr
             xy, vis = keypoint_visibility(verts_cam[t0:t1][:, kp_vertex].astype(np.float64), k, face_index, depth, tol)
             for i in range(t1 - t0):
                 name = f"{t0 + i:06d}"
-                write_image(tmp / "images" / f"{name}.png", image[i])
-                write_image(tmp / "masks" / f"{name}.png", mask[i].astype(np.uint8) * 255)
+                imwrite(tmp / "images" / f"{name}.png", image[i])  # the folder is renamed into place as a whole
+                imwrite(tmp / "masks" / f"{name}.png", mask[i].astype(np.uint8) * 255)
                 kp_frames[name] = [[round(float(x), 3), round(float(y), 3), int(v)]
                                    for (x, y), v in zip(xy[i], vis[i])]
             bar.update(t1 - t0)
