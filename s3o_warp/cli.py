@@ -2,8 +2,10 @@
 
     s3o-fit [SEQUENCE] [--device cpu|cuda[:N]] [--out RUN_DIR] [--config FILE] [--preset NAME]
             [--seed N] [--resume] [--branch-from RUN_DIR] [--set section.key=value ...]
+            [--box X0,Y0,X1,Y1 [--frame K] [--box-at K:X0,Y0,X1,Y1 ...] [--segmenter NAME] [--checkpoint PATH]]
 
-With no SEQUENCE it renders the built-in procedural quadruped into ``RUN_DIR/sequence`` and fits it.
+With no SEQUENCE it renders the built-in procedural quadruped into ``RUN_DIR/sequence`` and fits it. With ``--box``
+SEQUENCE is a video or a folder of frames without masks: ``s3o-masks`` makes ``RUN_DIR/sequence`` first.
 Bad input ends with one line on stderr (exit code 2), never a traceback.
 """
 
@@ -15,8 +17,11 @@ import sys
 from pathlib import Path
 
 from s3o_warp.config import PRESETS, make_config
+from s3o_warp.data.io import read_json
 from s3o_warp.errors import InputError
 from s3o_warp.fit import FitInterrupted, fit, resolve_device
+from s3o_warp.masks.cli import add_box_arguments, boxes_from
+from s3o_warp.masks.make import interrupt_on_sigterm, make_masks
 from s3o_warp.synth import make_sequence
 
 log = logging.getLogger("s3o_warp")
@@ -40,6 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "at a fraction of a fit")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override one setting, e.g. motion.steps=300")
     p.add_argument("--object-id", type=int, default=None, help="palette index of the object in multi-object masks")
+    add_box_arguments(p)
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     return p
 
@@ -64,6 +70,11 @@ def _run(args) -> int:
     cfg = make_config(args.preset, args.config, args.overrides, args.seed)
     if args.object_id is not None:
         cfg.data.object_id = args.object_id
+    boxes = boxes_from(args)
+    if boxes and args.sequence is None:
+        raise InputError("--box needs a video or a folder of frames to segment; pass it as SEQUENCE")
+    if boxes and args.masks is not None:
+        raise InputError("--box makes the masks; leave out --masks (or leave out --box to use your masks)")
     device = resolve_device(args.device)
     log.info("s3o-fit: device %s (%s)", device, "requested" if args.device else "auto")
     if args.sequence is None:
@@ -77,6 +88,8 @@ def _run(args) -> int:
         if not seq.exists():
             raise InputError(f"sequence folder {seq} does not exist; pass a folder with images/ and masks/")
         out = Path(args.out or Path("runs") / (args.name or seq.stem))
+    if boxes:
+        seq = _masks_first(seq, out, boxes, args, cfg)
     metrics = fit(seq, out, cfg, device, resume=args.resume, masks=args.masks, name=args.name,
                   branch_from=args.branch_from)
     log.info("run directory: %s", out.resolve())
@@ -86,6 +99,19 @@ def _run(args) -> int:
     for p in sorted((out / "renders").glob("*")):
         log.info("render: %s", p)
     return 0
+
+
+def _masks_first(source: Path, out: Path, boxes: dict, args, cfg) -> Path:
+    """``s3o-masks SOURCE --out RUN_DIR/sequence/NAME`` (NAME the video's or folder's, which the export is named
+    after; kept when made from the same input and boxes); a video's own frame rate becomes ``data.fps``."""
+    name = source.parent.name if source.name == "images" else source.stem if source.is_file() else source.name
+    seq = out / "sequence" / name
+    with interrupt_on_sigterm():
+        make_masks(source, seq, boxes, args.segmenter, args.checkpoint, cfg.data.flow_preset, reuse=True)
+    fps = read_json(seq / "masks.json", "masks record", "delete the folder to make the masks again").get("fps")
+    if fps:
+        cfg.data.fps = float(fps)
+    return seq
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -9,18 +9,20 @@ temporary; a killed process leaves it behind, and the next write of the same pat
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import logging
 import os
 import re
 import shutil
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import BinaryIO
 
 import cv2
 import numpy as np
 import torch
+from PIL import Image
 
 from s3o_warp.errors import InputError
 
@@ -172,3 +174,40 @@ def torch_save(obj, path) -> Path:
     with atomic_path(path) as tmp:
         torch.save(obj, tmp)
     return Path(path)
+
+
+class _NoMp4(Exception):
+    """OpenCV cannot encode mp4 here: the GIF fallback is written instead."""
+
+
+def write_video(frames: Iterable[np.ndarray], path, fps: float) -> Path:
+    """``frames`` (``(H, W, 3)`` uint8 RGB, one size) as an mp4 (OpenCV, mp4v) streamed frame by frame, or a GIF
+    (Pillow) beside it where OpenCV cannot encode mp4; written atomically. Returns the path written.
+
+    A list of frames falls back to the GIF even when OpenCV opens the file but writes nothing; a generator is
+    streamed, so only an encoder that refuses to open falls back (its frames are then gathered for the GIF)."""
+    path = Path(path)
+    it = iter(frames)
+    first = next(it)
+    h, w = first.shape[:2]
+    try:
+        with atomic_path(path) as tmp:
+            vw = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
+            if not vw.isOpened():
+                raise _NoMp4
+            for f in itertools.chain([first], it):
+                vw.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
+            vw.release()
+            if not (tmp.exists() and tmp.stat().st_size > 0):
+                if not isinstance(frames, list):
+                    raise InputError(f"{path}: OpenCV wrote an empty video; check the folder is writable")
+                raise _NoMp4
+        return path
+    except _NoMp4:
+        pass
+    rest = frames[1:] if isinstance(frames, list) else list(it)
+    ims = [Image.fromarray(f) for f in [first, *rest]]
+    gif = path.with_suffix(".gif")
+    with atomic_path(gif) as tmp:
+        ims[0].save(tmp, save_all=True, append_images=ims[1:], duration=int(1000 / fps), loop=0)
+    return gif

@@ -50,7 +50,7 @@ shows only part of it)."""
 FRAME_CACHE_SIZE = 4
 """Decoded frames (image and mask) a sequence keeps in memory; others are read from disk on demand."""
 
-__all__ = ["Sequence", "open_sequence", "check_data_config"]
+__all__ = ["Sequence", "open_sequence", "open_frames", "check_data_config"]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -91,6 +91,18 @@ def _image_size(path: Path) -> tuple[int, int]:
             f"{path}: cannot read this image ({exc.__class__.__name__}); replace or remove the file"
         ) from None
     return h, w
+
+
+def _common_size(files: list[Path]) -> tuple[int, int]:
+    """(H, W) shared by every file (headers only); InputError naming the first file of another size."""
+    size = _image_size(files[0])
+    for f in files[1:]:
+        s = _image_size(f)
+        if s != size:
+            raise InputError(
+                f"{f}: size {s[1]}x{s[0]} differs from {files[0].name}'s {size[1]}x{size[0]}; all frames must have one size"
+            )
+    return size
 
 
 def _read_rgb(path: Path) -> np.ndarray:
@@ -199,6 +211,80 @@ class _VideoSource(_FrameSource):
         self._cap.release()
 
 
+def _read_sized(source: _FrameSource, k: int, size: tuple[int, int]) -> np.ndarray:
+    """Frame k of ``source``, which must decode to ``size`` (H, W) (a file's pixels can differ from its header)."""
+    img = source.read(k)
+    if img.shape[:2] != tuple(size):
+        raise InputError(
+            f"{source.describe(k)}: size {img.shape[1]}x{img.shape[0]} differs from the header's "
+            f"{size[1]}x{size[0]}; re-save the file"
+        )
+    return img
+
+
+@dataclass
+class Frames:
+    """The frames of a video file or a folder of frames, without masks (what :mod:`s3o_warp.masks` segments).
+
+    Attributes:
+        name: the video file's stem or the folder's name.
+        size: ``(H, W)`` in pixels.
+        fps: the video's own frame rate, None for frame files.
+        files: the T frame files, None for a video.
+    """
+
+    name: str
+    size: tuple[int, int]
+    fps: float | None
+    files: list[Path] | None
+    _source: _FrameSource = field(repr=False)
+
+    def __len__(self) -> int:
+        return len(self._source)
+
+    def image(self, k: int) -> np.ndarray:
+        """Frame k as ``(H, W, 3) uint8`` RGB."""
+        return _read_sized(self._source, k, self.size)
+
+    def describe(self, k: int) -> str:
+        """Where frame k comes from (its file, or the video and index), for messages."""
+        return self._source.describe(k)
+
+    def close(self) -> None:
+        """Release a video decoder."""
+        if isinstance(self._source, _VideoSource):
+            self._source.close()
+
+
+def open_frames(path: str | Path) -> Frames:
+    """Open a video file, a folder of frames, or a folder holding ``images/`` (masks not needed). Decodes a video
+    once to count its frames; frame files are only listed and their headers read.
+
+    Raises:
+        InputError: a missing path, an undecodable video, a folder without frames, frames of different sizes,
+            fewer than 2 frames.
+    """
+    path = Path(path).expanduser()
+    if not path.exists():
+        raise InputError(f"{path}: no such file or folder; pass a video file or a folder of frames")
+    if path.is_file():
+        source = _VideoSource(path)
+        frames = Frames(path.stem, tuple(int(v) for v in source.size), source.fps, None, source)
+        what = f"{path} has {len(source)} frame(s)"
+    else:
+        folder = path / "images" if (path / "images").is_dir() else path
+        files = _list_images(folder)
+        if not files:
+            raise InputError(f"{folder}: no frames found (looked for {', '.join(IMAGE_EXTENSIONS)}); pass a video file "
+                             "or a folder of frames")
+        frames = Frames(path.name, _common_size(files), None, files, _FolderSource(files))
+        what = f"{folder} has {len(files)} frame(s)"
+    if len(frames) < 2:
+        frames.close()
+        raise InputError(f"{what}; a sequence needs at least 2 frames (optical flow pairs them)")
+    return frames
+
+
 # --------------------------------------------------------------------------------------------------
 # Sequence
 # --------------------------------------------------------------------------------------------------
@@ -268,16 +354,7 @@ class Sequence:
         """Frame k as ``(H, W, 3) uint8`` RGB (read-only array; decoded on demand)."""
         k = self._index(k)
 
-        def make() -> np.ndarray:
-            img = self._source.read(k)
-            if img.shape[:2] != tuple(self.size):
-                raise InputError(
-                    f"{self._source.describe(k)}: size {img.shape[1]}x{img.shape[0]} differs from the header's "
-                    f"{self.size[1]}x{self.size[0]}; re-save the file"
-                )
-            return img
-
-        return self._cached(("image", k), make)
+        return self._cached(("image", k), lambda: _read_sized(self._source, k, self.size))
 
     def mask(self, k: int) -> np.ndarray:
         """Frame k's foreground as ``(H, W) bool`` (read-only array; decoded on demand)."""
@@ -447,14 +524,7 @@ def open_sequence(
             log.info("%s: frame and mask names differ; pairing them in sorted order", mask_dir)
         frame_names = [p.stem for p in image_files]
         source = _FolderSource(image_files)
-        size = _image_size(image_files[0])
-        for f in image_files[1:]:
-            s = _image_size(f)
-            if s != size:
-                raise InputError(
-                    f"{f}: size {s[1]}x{s[0]} differs from {image_files[0].name}'s {size[1]}x{size[0]}; "
-                    "all frames must have one size"
-                )
+        size = _common_size(image_files)
     if n_frames < 2:
         raise InputError(f"{what_frames}; a sequence needs at least 2 frames (optical flow pairs them)")
 

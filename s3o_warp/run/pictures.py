@@ -11,10 +11,9 @@ import numpy as np
 import torch
 import trimesh
 from matplotlib.figure import Figure
-from PIL import Image
 
 from s3o_warp.config import DataConfig
-from s3o_warp.data.io import atomic_path, write_image
+from s3o_warp.data.io import atomic_path, write_image, write_video
 from s3o_warp.data.sequence import open_sequence
 from s3o_warp.geometry import project_np
 from s3o_warp.ops import interpolate, rasterize
@@ -37,33 +36,6 @@ def render_fit_frames(rig, chunk: int = 8):
             yield fi[k].numpy(), col[k].numpy()
 
 
-class _NoMp4(Exception):
-    """OpenCV cannot encode mp4 here: the GIF fallback is written instead."""
-
-
-def _write_video(frames: list[np.ndarray], path: Path, fps: float) -> Path:
-    """mp4 (OpenCV, mp4v) with a GIF fallback (Pillow); written atomically."""
-    h, w = frames[0].shape[:2]
-    try:
-        with atomic_path(path) as tmp:
-            vw = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
-            if not vw.isOpened():
-                raise _NoMp4
-            for f in frames:
-                vw.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
-            vw.release()
-            if not (tmp.exists() and tmp.stat().st_size > 0):
-                raise _NoMp4
-        return path
-    except _NoMp4:
-        pass
-    gif = path.with_suffix(".gif")
-    ims = [Image.fromarray(f) for f in frames]
-    with atomic_path(gif) as tmp:
-        ims[0].save(tmp, save_all=True, append_images=ims[1:], duration=int(1000 / fps), loop=0)
-    return gif
-
-
 def overlay_video(run: Path, rig, sequence, fps: float) -> Path:
     """Side by side input | input with the fitted mesh (rendered colours, outlined) at the input rate."""
     out = []
@@ -76,7 +48,7 @@ def overlay_video(run: Path, rig, sequence, fps: float) -> Path:
         edge = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)) > 0
         over[edge] = (255, 64, 32)
         out.append(np.concatenate([img, over.astype(np.uint8)], 1))
-    return _write_video(out, run / "renders" / "overlay.mp4", fps)
+    return write_video(out, run / "renders" / "overlay.mp4", fps)
 
 
 def posed_bone_centres(rig, t: int) -> np.ndarray:
@@ -114,7 +86,7 @@ def skeleton_overlay(run: Path, rig, sequence, fps: float = 24.0) -> list[Path]:
         return []
     frames = [draw_skeleton(sequence.image(k), rig, k) for k in range(rig.num_frames)]
     path = write_image(run / "renders" / "skeleton.png", frames[0])
-    return [path, _write_video(frames, run / "renders" / "skeleton.mp4", fps)]
+    return [path, write_video(frames, run / "renders" / "skeleton.mp4", fps)]
 
 
 def loss_plot(run: Path, history: list[dict]) -> Path | None:
@@ -230,7 +202,7 @@ def canonical_views(run: Path, rig, fps: float = 24.0, turntable_frames: int = 3
         a = 2 * np.pi * k / turntable_frames
         direction = np.array([np.sin(a), 0.35, np.cos(a)])
         frames.append(render_canonical(rig, _look_from(direction, centre, dist, -down)))
-    paths.append(_write_video(frames, run / "renders" / "turntable.mp4", fps))
+    paths.append(write_video(frames, run / "renders" / "turntable.mp4", fps))
     img = render_canonical(rig, _look_from(np.array([0.0, 0.0, 1.0]), centre, dist, -down), colors=bone_colors(rig.weights))
     paths.append(write_image(run / "renders" / "bones.png", img))
     return paths

@@ -1,0 +1,71 @@
+"""The ``s3o-masks`` console script: a sequence folder (frames, masks and a preview) from a video and a box.
+
+    s3o-masks INPUT --box X0,Y0,X1,Y1 [--frame K] [--box-at K:X0,Y0,X1,Y1 ...] --out SEQ
+              [--segmenter grabcut|sam2] [--checkpoint PATH]
+
+Bad input ends with one line on stderr (exit code 2) and nothing written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from s3o_warp.errors import InputError
+from s3o_warp.masks.make import SEGMENTERS, interrupt_on_sigterm, make_masks, parse_box, parse_box_at
+
+
+def add_box_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags that describe the object (shared with ``s3o-fit``)."""
+    p.add_argument("--box", default=None, metavar="X0,Y0,X1,Y1",
+                   help="a box around the object on frame --frame, in that frame's pixels (left, top, right, bottom)")
+    p.add_argument("--frame", type=int, default=0, metavar="K", help="the frame --box is drawn on (default 0)")
+    p.add_argument("--box-at", dest="box_at", action="append", default=[], metavar="K:X0,Y0,X1,Y1",
+                   help="a further box on frame K (repeatable): where the object is lost, or changes much")
+    p.add_argument("--segmenter", default="grabcut", help=f"one of {', '.join(SEGMENTERS)}: grabcut (default, OpenCV "
+                   "only) or sam2 (the sam2 package and --checkpoint)")
+    p.add_argument("--checkpoint", default=None, metavar="PATH", help="SAM 2 weights for --segmenter sam2 "
+                   "(e.g. sam2.1_hiera_tiny.pt, downloaded once; never fetched here)")
+
+
+def boxes_from(args) -> dict:
+    """``{frame: box}`` from --box/--frame and every --box-at."""
+    boxes = {}
+    if args.box is not None:
+        boxes[args.frame] = parse_box(args.box)
+    for item in args.box_at:
+        k, b = parse_box_at(item)
+        if k in boxes:
+            raise InputError(f"--box-at {item!r}: frame {k} already has a box; give one box per frame")
+        boxes[k] = b
+    return boxes
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="s3o-masks", description="Masks for a video from a box around the object.")
+    p.add_argument("input", help="a video file, a folder of frames, or a folder with images/")
+    p.add_argument("--out", required=True, metavar="SEQ", help="the sequence folder to write (images/, masks/, "
+                   "masks_preview.mp4); s3o-fit SEQ fits it")
+    add_box_arguments(p)
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(message)s")
+    try:
+        with interrupt_on_sigterm():
+            make_masks(args.input, args.out, boxes_from(args), args.segmenter, args.checkpoint)
+    except InputError as e:
+        print(f"s3o-masks: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("s3o-masks: interrupted; nothing was written", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,250 @@
+"""The default segmenter, OpenCV only: GrabCut on the frame with the box, then carried through the video by optical
+flow, frame by frame, forward and backward.
+
+On the box's frame K the object's motion labels the box first: the background's motion between K and K +- gap is
+one homography (fitted with RANSAC on the optical flow outside the box); pixels in the box that move otherwise
+start GrabCut as probable object, the rest as probable background (a plain GrabCut rectangle where the
+homography is not found, e.g. a textureless background). GrabCut then runs :data:`INIT_ITERATIONS` times.
+
+From frame t to its neighbour t': the mask of t is warped to t' by the backward flow (DIS, the fit's flow
+settings); pixels farther than a band outside it are background, and GrabCut decides the warped mask and the band,
+with the object's colour model learned on frame K and frozen (``GC_EVAL_FREEZE_MODEL``) and the background's
+learned on t' around the object. Nothing inside the warped mask is forced to be object: background uncovered
+behind a moving object, which the flow carries along with it, would be kept for good. A frozen object model keeps the background from leaking in over
+time; the band lets a limb that moves faster than the flow follows be found again. The components of the result
+that lie on the warped mask are kept.
+
+Every GrabCut runs with OpenCV's random generator seeded, so a video's masks repeat bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator
+
+import cv2
+import numpy as np
+
+from s3o_warp.data.crops import mask_bbox
+from s3o_warp.data.flow import FLOW_FINEST_SCALE, make_dis
+
+INIT_ITERATIONS = 10
+"""GrabCut iterations on the box's frame (from 5 to 10 the box frame's IoU rose 0.02-0.10 on DAVIS cows and dog)."""
+
+MOTION_GAP = 2
+"""Frames between the box's frame and the frames whose motion labels the box (1 moves the object too little)."""
+
+MOTION_SIDE = 640
+"""The motion labels are computed on frames scaled down to this longer side (pixels)."""
+
+HOMOGRAPHY_INLIERS = 0.5
+"""Fewest inliers (fraction of the flow samples outside the box) for the background's motion to be one homography."""
+
+ROI_PAD = 0.4
+"""Each step works in the previous mask's box grown by this fraction of its longer side (plus :data:`ROI_MARGIN`)."""
+
+ROI_MARGIN = 16
+"""Pixels added on every side of the working region."""
+
+WORK_SIDE = 720
+"""Longer side (pixels) the working region is scaled down to when larger (phone videos): GrabCut's cost grows with
+the pixel count."""
+
+BAND = 0.16
+"""Width of the band outside the warped mask that GrabCut decides, as a fraction of the square root of its area."""
+
+COLOUR_SAMPLES = 20000
+"""Pixels drawn to learn each colour model (all of them when fewer)."""
+
+SEED = 0
+"""OpenCV's random generator seed before every GrabCut (its colour models start from k-means)."""
+
+Box = tuple[int, int, int, int]
+"""``(x0, y0, x1, y1)`` inclusive frame pixels."""
+
+
+class ObjectLost(Exception):
+    """The mask of frame ``frame`` vanished while carried from the box on frame ``anchor``."""
+
+    def __init__(self, frame: int, anchor: int, area: int, anchor_area: int):
+        super().__init__(f"object lost at frame {frame}")
+        self.frame, self.anchor, self.area, self.anchor_area = frame, anchor, area, anchor_area
+
+
+LOST_FRACTION = 0.1
+"""A mask smaller than this fraction of its box frame's mask counts as lost."""
+
+
+def _grabcut(image: np.ndarray, labels: np.ndarray, models=None, iterations: int = 1, mode=cv2.GC_INIT_WITH_MASK):
+    """GrabCut in place on ``labels`` (``GC_*`` values); returns the object pixels as a bool array."""
+    cv2.setRNGSeed(SEED)
+    bgd, fgd = models if models is not None else (np.zeros((1, 65)), np.zeros((1, 65)))
+    cv2.grabCut(np.ascontiguousarray(image), labels, None, bgd, fgd, iterations, mode)
+    return (labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)
+
+
+def _sample(pixels: np.ndarray, n: int = COLOUR_SAMPLES) -> np.ndarray:
+    if len(pixels) <= n:
+        return pixels
+    return pixels[np.random.default_rng(SEED).choice(len(pixels), n, replace=False)]
+
+
+def colour_models(object_pixels: np.ndarray, background_pixels: np.ndarray):
+    """GrabCut's two colour models (Gaussian mixtures, OpenCV's ``(1, 65)`` float64 layout) learned from ``(N, 3)``
+    uint8 pixel samples: ``(background, object)``."""
+    fg, bg = _sample(object_pixels), _sample(background_pixels)
+    img = np.concatenate([fg, bg])[:, None, :].astype(np.uint8)
+    lab = np.concatenate([np.full(len(fg), cv2.GC_FGD), np.full(len(bg), cv2.GC_BGD)])[:, None].astype(np.uint8)
+    models = (np.zeros((1, 65)), np.zeros((1, 65)))
+    _grabcut(img, lab, models, iterations=0)  # 0 iterations: the models from the labelled samples, nothing else
+    return models
+
+
+def _keep_object(mask: np.ndarray, prior: np.ndarray) -> np.ndarray:
+    """The components of ``mask`` that lie mostly on ``prior``, and the largest one."""
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    if n <= 2:
+        return mask
+    on_prior = np.bincount(lab[prior], minlength=n)
+    keep = on_prior > 0.5 * stats[:, cv2.CC_STAT_AREA]
+    keep[1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))] = True
+    keep[0] = False
+    return keep[lab]
+
+
+def _grey(image: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    if scale != 1.0:
+        image = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+
+
+def motion_residual(image: np.ndarray, other: np.ndarray, box: Box, dis: cv2.DISOpticalFlow) -> np.ndarray | None:
+    """How far each pixel of ``image`` moves, towards ``other``, from where the background's motion (one homography,
+    RANSAC on the flow outside ``box``) takes it: ``(H, W) float32`` frame pixels, or None when the background's
+    motion is not one homography (fewer than :data:`HOMOGRAPHY_INLIERS` inliers)."""
+    H, W = image.shape[:2]
+    scale = min(1.0, MOTION_SIDE / max(H, W))
+    a, b = _grey(image, scale), _grey(other, scale)
+    flow = dis.calc(a, b, None)
+    h, w = a.shape
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    x0, y0, x1, y1 = (int(v * scale) for v in box)
+    outside = np.ones((h, w), bool)
+    outside[max(0, y0 - 2) : y1 + 3, max(0, x0 - 2) : x1 + 3] = False
+    idx = np.flatnonzero(outside)
+    if len(idx) < 16:
+        return None
+    idx = idx[:: max(1, len(idx) // 4000)]
+    src = np.stack([xx.ravel()[idx], yy.ravel()[idx]], 1)
+    dst = src + flow.reshape(-1, 2)[idx]
+    hom, inliers = cv2.findHomography(src, dst, cv2.RANSAC, 1.0)
+    if hom is None or inliers.mean() < HOMOGRAPHY_INLIERS:
+        return None
+    pts = np.stack([xx, yy], -1)
+    predicted = cv2.perspectiveTransform(pts.reshape(-1, 1, 2), hom).reshape(h, w, 2)
+    residual = np.linalg.norm(pts + flow - predicted, axis=-1)
+    return cv2.resize(residual, (W, H), interpolation=cv2.INTER_LINEAR) / scale
+
+
+def segment_box(image: np.ndarray, box: Box, neighbours: list[np.ndarray], dis: cv2.DISOpticalFlow) -> np.ndarray:
+    """The object in ``box`` on ``image`` (``(H, W, 3)`` uint8): GrabCut started from the object's motion against
+    ``neighbours`` (frames :data:`MOTION_GAP` before and after), see the module docstring. ``(H, W) bool``."""
+    H, W = image.shape[:2]
+    x0, y0, x1, y1 = box
+    residuals = [r for r in (motion_residual(image, n, box, dis) for n in neighbours) if r is not None]
+    labels = np.full((H, W), cv2.GC_BGD, np.uint8)
+    inside = np.s_[y0 : y1 + 1, x0 : x1 + 1]
+    labels[inside] = cv2.GC_PR_FGD
+    if residuals:
+        moving = np.max(residuals, axis=0)[inside]
+        # Otsu's threshold on the residual in the box, at 1/20 pixel
+        scaled = np.clip(moving * 20.0, 0, 255).astype(np.uint8)
+        t, _ = cv2.threshold(scaled, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+        labels[inside] = np.where(moving > t / 20.0, cv2.GC_PR_FGD, cv2.GC_PR_BGD)
+        if not (labels == cv2.GC_PR_FGD).any():
+            labels[inside] = cv2.GC_PR_FGD
+    mask = _grabcut(image, labels, iterations=INIT_ITERATIONS)
+    return _keep_object(mask, np.zeros_like(mask))
+
+
+def _disk(r: int) -> np.ndarray:
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+
+
+def carry(previous_image: np.ndarray, image: np.ndarray, previous_mask: np.ndarray, object_pixels: np.ndarray,
+          dis: cv2.DISOpticalFlow) -> np.ndarray:
+    """The mask of ``image`` from its neighbour's (``previous_mask`` on ``previous_image``) and the object's colour
+    samples ``object_pixels`` (``(N, 3)`` uint8, from the box's frame); see the module docstring. ``(H, W) bool``."""
+    H, W = previous_mask.shape
+    x0, y0, x1, y1 = mask_bbox(previous_mask)
+    pad = int(ROI_PAD * max(x1 - x0, y1 - y0)) + ROI_MARGIN
+    X0, Y0, X1, Y1 = max(0, x0 - pad), max(0, y0 - pad), min(W, x1 + pad + 1), min(H, y1 + pad + 1)
+    scale = min(1.0, WORK_SIDE / max(X1 - X0, Y1 - Y0))
+    size = (max(1, round((X1 - X0) * scale)), max(1, round((Y1 - Y0) * scale)))
+
+    def work(a: np.ndarray, interp=cv2.INTER_AREA) -> np.ndarray:
+        a = a[Y0:Y1, X0:X1]
+        return a if scale == 1.0 else cv2.resize(a, size, interpolation=interp)
+
+    roi, prev_roi = work(image), work(previous_image)
+    back = dis.calc(_grey(roi), _grey(prev_roi), None)  # at a pixel of image: where it was in previous_image
+    h, w = roi.shape[:2]
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    prev_m = work(previous_mask.astype(np.float32), cv2.INTER_LINEAR)
+    warped = cv2.remap(prev_m, xx + back[..., 0], yy + back[..., 1], cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_CONSTANT) > 0.5
+    out = np.zeros((H, W), bool)
+    if not warped.any():
+        return out
+    outer = cv2.dilate(warped.astype(np.uint8), _disk(max(3, int(BAND * math.sqrt(warped.sum()))))) > 0
+    labels = np.full((h, w), cv2.GC_BGD, np.uint8)
+    labels[outer] = cv2.GC_PR_BGD
+    labels[warped] = cv2.GC_PR_FGD
+    if not (~outer).any():  # the region is all object: nothing to learn the background from
+        fg = warped
+    else:
+        models = colour_models(object_pixels, roi[~outer])
+        fg = _keep_object(_grabcut(roi, labels, models, mode=cv2.GC_EVAL_FREEZE_MODEL), warped)
+    if scale != 1.0:
+        fg = cv2.resize(fg.astype(np.float32), (X1 - X0, Y1 - Y0), interpolation=cv2.INTER_LINEAR) > 0.5
+    out[Y0:Y1, X0:X1] = fg
+    return out
+
+
+def segment_video(read: Callable[[int], np.ndarray], n: int, boxes: dict[int, Box],
+                  flow_preset: str = "medium") -> Iterator[tuple[int, np.ndarray]]:
+    """Masks of frames 0..n-1 from boxes on some of them, as ``(k, (H, W) bool)`` pairs, each frame once (in the
+    order they are made, not 0..n-1).
+
+    Each box's frame is segmented (:func:`segment_box`) and its mask carried (:func:`carry`) forward and backward
+    to halfway to the next box (to the ends of the video past the first and last box).
+
+    Args:
+        read: frame k as ``(H, W, 3)`` uint8 RGB.
+        n: the number of frames.
+        boxes: ``{frame: (x0, y0, x1, y1)}``, inclusive frame pixels, checked by the caller.
+        flow_preset: ``DataConfig.flow_preset``.
+
+    Raises:
+        ObjectLost: a mask fell under :data:`LOST_FRACTION` of its box frame's mask.
+    """
+    dis = make_dis(flow_preset, FLOW_FINEST_SCALE)
+    anchors = sorted(boxes)
+    for i, a in enumerate(anchors):
+        lo = 0 if i == 0 else (anchors[i - 1] + a) // 2 + 1
+        hi = n - 1 if i == len(anchors) - 1 else (a + anchors[i + 1]) // 2
+        image = read(a)
+        neighbours = [read(k) for k in (a - MOTION_GAP, a + MOTION_GAP) if 0 <= k < n]
+        mask = segment_box(image, boxes[a], neighbours, dis)
+        yield a, mask
+        area = int(mask.sum())
+        object_pixels = image[mask]
+        for stop, step in ((hi, 1), (lo, -1)):
+            prev_image, prev_mask = image, mask
+            for k in range(a + step, stop + step, step):
+                cur = read(k)
+                m = carry(prev_image, cur, prev_mask, object_pixels, dis)
+                if m.sum() < LOST_FRACTION * area or not m.any():
+                    raise ObjectLost(k, a, int(m.sum()), area)
+                yield k, m
+                prev_image, prev_mask = cur, m
