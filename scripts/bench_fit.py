@@ -6,7 +6,8 @@
 
 Cases: ``quadruped`` (the built-in default shot, the README's main command), ``fox`` (Khronos Fox Walk,
 48 frames, 320x240, 90-degree orbit), ``fox120`` (the same clip with a 120-degree orbit), ``horse`` (Quaternius Horse Walk, 48 frames, 320x240, 120-degree
-orbit), ``cows`` / ``dog`` (DAVIS with BADJA keypoints). Cases that need ../shared/data skip with a
+orbit), ``cows`` / ``dog`` (DAVIS with BADJA keypoints), ``cows-box`` / ``dog-box`` (the same on masks made from a
+box on frame 0, :data:`BOXED`). Cases that need ../shared/data skip with a
 message when it is absent. Each fit's metrics, per-phase wall time (from log.jsonl) and total time
 are recorded with the command, device, versions and git commit. Results are merged into the JSON file
 (one entry per case/method/seed/preset/overrides and commit; a rerun at the same commit replaces its
@@ -30,9 +31,12 @@ import numpy as np
 import torch
 
 from s3o_warp.config import make_config
-from s3o_warp.data.io import write_image, write_text
+from s3o_warp.data.crops import mask_bbox
+from s3o_warp.data.io import copy_file, write_image, write_text
 from s3o_warp.data.keypoints import badja_to_keypoints, write_keypoints
+from s3o_warp.evaluation.report import evaluate_run
 from s3o_warp.fit import fit, resolve_device
+from s3o_warp.masks.make import make_masks
 from s3o_warp.provenance import REPO, cpu_name, git_commit, versions
 from s3o_warp.synth import make_sequence
 
@@ -45,6 +49,19 @@ SYNTH = {
     "horse": dict(source="gltf/quaternius_Horse.glb", clip="Walk", frames=48, fps=30.0, size=(320, 240), azim=(-60.0, 60.0), elev=15.0),
 }
 DAVIS = {"cows": "cows", "dog": "dog"}
+BOXED = {"cows-box": "cows", "dog-box": "dog"}
+"""Cases fitted on masks made from one box (``s3o_warp.masks``, the default segmenter) instead of the true ones;
+their IoU and PCK-T are scored against the true masks (``iou_own_masks``: against the masks fitted)."""
+
+BOX_MARGIN = 4
+"""Pixels between the true mask's bounding box and a benchmark's box (a hand-drawn box leaves some room)."""
+
+
+def true_box(mask: np.ndarray) -> tuple[int, int, int, int]:
+    """The box a benchmark draws around a true mask: its bounding box grown by :data:`BOX_MARGIN`, inside the frame."""
+    H, W = mask.shape
+    x0, y0, x1, y1 = mask_bbox(mask)
+    return (max(0, x0 - BOX_MARGIN), max(0, y0 - BOX_MARGIN), min(W - 1, x1 + BOX_MARGIN), min(H - 1, y1 + BOX_MARGIN))
 
 
 def prepare_case(case: str, work: Path) -> Path | None:
@@ -75,7 +92,16 @@ def prepare_case(case: str, work: Path) -> Path | None:
             kp = badja_to_keypoints(DATA / "badja" / f"{name}.json", frame_size=(480, 854))
             write_keypoints(kp, seq / "keypoints.json")
         return seq
-    raise SystemExit(f"bench_fit: unknown case {case}; choose from {', '.join(list(SYNTH) + list(DAVIS))}")
+    if case in BOXED:
+        truth = prepare_case(BOXED[case], work)
+        if truth is None:
+            return None
+        if not (seq / "masks.json").is_file():
+            first = cv2.imread(str(sorted((truth / "masks").iterdir())[0]), cv2.IMREAD_GRAYSCALE) > 127
+            make_masks(truth / "images", seq, {0: true_box(first)})
+            copy_file(truth / "keypoints.json", seq / "keypoints.json")
+        return seq
+    raise SystemExit(f"bench_fit: unknown case {case}; choose from {', '.join(list(SYNTH) + list(DAVIS) + list(BOXED))}")
 
 
 def resamplings(run: Path) -> list[str]:
@@ -176,6 +202,9 @@ def main(argv=None) -> int:
                     "git_commit": header["git_commit"],  # the code this process loaded, not HEAD when the fit ends
                     "device_name": header["device_name"],
                 }
+                if case in BOXED:  # scored against the true masks (and their areas for PCK-T)
+                    true = evaluate_run(run, prepare_case(BOXED[case], work), progress=False)
+                    entry.update(iou_own_masks=entry["iou"], iou=true["mask_iou"]["mean"], pck_t=true["pck_t"]["pck"])
                 print(json.dumps(entry), flush=True)
                 record(dest, header, entry)
         if pictures:  # the run's own copy, and the repository's figure for this sequence

@@ -4,7 +4,7 @@
     python scripts/bench_masks.py [--cases cows dog fox120 horse] [--frame K] [--out-dir DIR]
 
 Each case's frames go through ``s3o_warp.masks.make_masks`` (the default segmenter) with one box on frame K (default
-0): the true mask's bounding box grown by :data:`BOX_MARGIN` pixels, as a user would draw it. Cases: ``cows`` and
+0): the true mask's bounding box grown by a few pixels (``bench_fit.true_box``), as a user would draw it. Cases: ``cows`` and
 ``dog`` (DAVIS 480p), ``fox120`` and ``horse`` (the synthetic renders of ``scripts/bench_fit.py``). Cases whose data
 is missing skip with a message. A rerun at the same commit replaces its entry.
 """
@@ -23,16 +23,12 @@ import cv2
 import numpy as np
 import torch
 
-from s3o_warp.data.crops import mask_bbox
 from s3o_warp.data.io import write_text
 from s3o_warp.masks.make import make_masks
 from s3o_warp.provenance import REPO, cpu_name, git_commit, versions
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_fit import DATA, SYNTH, prepare_case  # noqa: E402
-
-BOX_MARGIN = 4
-"""Pixels between the true mask's bounding box and the benchmark's box (a hand-drawn box leaves some room)."""
+from bench_fit import DATA, SYNTH, prepare_case, true_box  # noqa: E402
 
 
 def frames_and_truth(case: str, work: Path) -> tuple[Path, Path] | None:
@@ -67,8 +63,7 @@ def main(argv=None) -> int:
         images, truth_dir = paths
         truth = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) > 127 for p in sorted(truth_dir.iterdir())]
         H, W = truth[args.frame].shape
-        x0, y0, x1, y1 = mask_bbox(truth[args.frame])
-        box = (max(0, x0 - BOX_MARGIN), max(0, y0 - BOX_MARGIN), min(W - 1, x1 + BOX_MARGIN), min(H - 1, y1 + BOX_MARGIN))
+        box = true_box(truth[args.frame])
         out = work / "masks" / case
         t0 = time.perf_counter()
         make_masks(images, out, {args.frame: box})

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from s3o_warp.errors import InputError
-from s3o_warp.masks.grabcut import Box
+from s3o_warp.masks.grabcut import LOST_FRACTION, Box, ObjectLost
 
 log = logging.getLogger(__name__)
 
@@ -76,26 +76,21 @@ def _device() -> str:
     return "cuda" if torch.cuda.is_available() else "cpu"
 
 
-def segment_video(files: list[Path], boxes: dict[int, Box], checkpoint: Path | None, predictor=None
-                  ) -> Iterator[tuple[int, np.ndarray]]:
-    """Masks of every frame, as ``(k, (H, W) bool)`` pairs (each frame once), from SAM 2 prompted with each box on
-    its frame and carried forward and backward through the video; a frame prompted by several boxes' runs takes
-    the union of their masks.
+def propagate(predictor, files: list[Path], boxes: dict[int, Box]) -> dict[int, np.ndarray]:
+    """SAM 2 prompted with each box on its frame and carried forward and backward through the video: ``{k: (H, W)
+    bool}`` for every frame (a frame reached from several boxes takes the union of their masks).
 
     Args:
+        predictor: from :func:`build_predictor`.
         files: the T frame files, in order.
         boxes: ``{frame: (x0, y0, x1, y1)}`` inclusive frame pixels.
-        checkpoint: SAM 2 weights (named as downloaded, :func:`config_name`).
-        predictor: an already built predictor (tests); None builds one from ``checkpoint``.
     """
-    if predictor is None:
-        predictor = build_predictor(config_name(checkpoint), checkpoint, _device())
+    masks: dict[int, np.ndarray] = {}
     with tempfile.TemporaryDirectory(prefix="s3o-sam2-") as tmp:
         # SAM 2 reads a folder of JPEG frames named by their index
         for k, f in enumerate(files):
             img = cv2.imread(str(f), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
             cv2.imwrite(str(Path(tmp) / f"{k:05d}.jpg"), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
-        masks: dict[int, np.ndarray] = {}
         with torch.inference_mode():
             state = predictor.init_state(video_path=tmp)
             for k, (x0, y0, x1, y1) in sorted(boxes.items()):
@@ -105,5 +100,24 @@ def segment_video(files: list[Path], boxes: dict[int, Box], checkpoint: Path | N
                 for k, _, logits in predictor.propagate_in_video(state, reverse=reverse):
                     m = (logits[0, 0] > 0.0).cpu().numpy()
                     masks[k] = masks[k] | m if k in masks else m
+    return masks
+
+
+def segment_video(files: list[Path], boxes: dict[int, Box], checkpoint: Path) -> Iterator[tuple[int, np.ndarray]]:
+    """Masks of every frame, as ``(k, (H, W) bool)`` pairs in order, from SAM 2 with the weights ``checkpoint``
+    (:func:`propagate`).
+
+    Raises:
+        ObjectLost: the first frame, going out from each box, whose mask is under
+            :data:`s3o_warp.masks.grabcut.LOST_FRACTION` of its nearest box frame's (the same rule as the default
+            segmenter's).
+    """
+    masks = propagate(build_predictor(config_name(checkpoint), checkpoint, _device()), files, boxes)
+    anchors = sorted(boxes)
+    for k in sorted(range(len(files)), key=lambda k: min(abs(k - a) for a in anchors)):
+        a = min(anchors, key=lambda a: abs(k - a))
+        area, anchor_area = int(masks[k].sum()), int(masks[a].sum())
+        if area == 0 or area < LOST_FRACTION * anchor_area:
+            raise ObjectLost(k, a, area, anchor_area)
     for k in range(len(files)):
         yield k, masks[k]
