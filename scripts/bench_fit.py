@@ -170,6 +170,7 @@ def main(argv=None) -> int:
                     "pck_t": (metrics.get("pck_t") or {}).get("pck"),
                     "chamfer": (metrics.get("shape_3d") or {}).get("chamfer"),
                     "fscore": (metrics.get("shape_3d") or {}).get("fscore"),
+                    **views_figures(metrics),
                     "skeleton": {k: v for k, v in (metrics.get("skeleton") or {}).items() if k != "per_frame"},
                     "bones": len(json.loads((run / "skeleton.json").read_text())["bones"]),
                     "resamplings": resamplings(run),
@@ -183,6 +184,17 @@ def main(argv=None) -> int:
             _compose(pictures, figure_path(case, device.type, args.figure_tag))
     print(f"wrote {dest}")
     return 0
+
+
+def views_figures(metrics: dict) -> dict:
+    """The figures from every side of a fit's metrics (synthetic cases): novel-view IoU per alignment and view,
+    F-score at 1 % and 2 % with each frame aligned, normal consistency and roughness (the truth's beside)."""
+    if "views" not in metrics:
+        return {}
+    v, s = metrics["views"], metrics["surface"]
+    return {"novel_iou": {k: {"mean": v[k]["mean"], **v[k]["per_view"]} for k in ("sequence", "framewise")},
+            "fscore_framewise": s["fscore"], "normal_consistency": s["normal_consistency"],
+            "roughness": {k: s["roughness"][k] for k in ("pred", "truth")}}
 
 
 def _same_run(a: dict, b: dict) -> bool:

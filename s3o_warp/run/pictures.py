@@ -215,22 +215,34 @@ def render_canonical(rig, view: np.ndarray, size: int = 256, draw_skeleton: bool
 
 
 def canonical_views(run: Path, rig, fps: float = 24.0, turntable_frames: int = 36) -> list[Path]:
-    """Side and top views of the canonical mesh with its skeleton (PNG) and a turntable (mp4/GIF)."""
+    """Side, top and front views of the canonical mesh with its skeleton (PNG; ``canonical_views.png`` puts the
+    three over the same views in plain grey, shaded, where the shape's width and surface show), and a turntable
+    (mp4/GIF) of the coloured mesh beside the plain one."""
     v = rig.verts.astype(np.float64)
     centre = 0.5 * (v.min(0) + v.max(0))
     dist = 3.0 * np.linalg.norm(v.max(0) - v.min(0))
-    # object frame: the canonical camera's axes (y down, z away from the canonical camera)
+    # object frame: the canonical camera's axes (x along the image's rows, y down, z away from the canonical camera)
     down = np.array([0.0, 1.0, 0.0])
+    across = np.array([0.0, 0.0, 1.0])
     paths = []
-    for name, direction, up in (("side", np.array([0.0, 0.0, 1.0]), -down), ("top", down, np.array([0.0, 0.0, 1.0]))):
-        img = render_canonical(rig, _look_from(direction, centre, dist, up))
-        paths.append(write_image(run / "renders" / f"canonical_{name}.png", img))
+    grey = np.full((v.shape[0], 3), 0.8, np.float32)
+    coloured, plain = [], []
+    for name, direction, up in (("side", across, -down), ("top", down, across),
+                                ("front", np.array([-1.0, 0.0, 0.0]), -down)):
+        view = _look_from(direction, centre, dist, up)
+        coloured.append(render_canonical(rig, view))
+        plain.append(render_canonical(rig, view, draw_skeleton=False, colors=grey))
+        paths.append(write_image(run / "renders" / f"canonical_{name}.png", coloured[-1]))
+    # one picture to judge the shape at a glance: side, top and front, coloured with the skeleton over plain grey
+    paths.append(write_image(run / "renders" / "canonical_views.png",
+                             np.concatenate([np.concatenate(coloured, 1), np.concatenate(plain, 1)], 0)))
     frames = []
     for k in range(turntable_frames):
         a = 2 * np.pi * k / turntable_frames
-        direction = np.array([np.sin(a), 0.35, np.cos(a)])
-        frames.append(render_canonical(rig, _look_from(direction, centre, dist, -down)))
+        view = _look_from(np.array([np.sin(a), 0.35, np.cos(a)]), centre, dist, -down)
+        frames.append(np.concatenate([render_canonical(rig, view),
+                                      render_canonical(rig, view, draw_skeleton=False, colors=grey)], 1))
     paths.append(_write_video(frames, run / "renders" / "turntable.mp4", fps))
-    img = render_canonical(rig, _look_from(np.array([0.0, 0.0, 1.0]), centre, dist, -down), colors=bone_colors(rig.weights))
+    img = render_canonical(rig, _look_from(across, centre, dist, -down), colors=bone_colors(rig.weights))
     paths.append(write_image(run / "renders" / "bones.png", img))
     return paths
