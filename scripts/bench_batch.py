@@ -1,0 +1,110 @@
+#!/usr/bin/env python
+"""What ``s3o-batch`` adds to the fits it runs: ``benchmarks/batch-<device>.json``.
+
+    python scripts/bench_batch.py [--sequences 4] [--frames 16] [--size 128x96] [--preset smoke] [--set KEY=VALUE ...]
+                                  [--cpus-per-fit C] [--work DIR]
+
+Short synthetic quadruped sequences (one seed each, rendered once under --work) are fitted twice, each time by a
+fresh process timed from its start to its exit: one after another by ``fit()`` in one Python process, then by
+``s3o-batch`` on a local Ray (its start, the workers' imports, the tasks and the summary included). The overhead is
+the batch's wall time over the loop's, minus one. Each fit's mask IoU is recorded from both, to show the batch runs
+the same fits. The machine's load average is recorded too: on a shared machine both walls move with it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import ray
+
+from s3o_warp.data.io import write_text
+from s3o_warp.provenance import REPO, device_name, git_commit, versions
+from s3o_warp.synth import make_sequence
+
+LOOP = r"""
+import json, sys
+from pathlib import Path
+from s3o_warp.config import make_config
+from s3o_warp.fit import fit, resolve_device
+seqs, runs, preset, sets = sys.argv[1], Path(sys.argv[2]), sys.argv[3], sys.argv[4:]
+out = {}
+for seq in sorted(p for p in Path(seqs).iterdir() if (p / "images").is_dir()):
+    m = fit(seq, runs / seq.name, make_config(preset, overrides=sets), resolve_device("cpu"))
+    out[seq.name] = m["mask_iou"]["mean"]
+print(json.dumps(out))
+"""
+
+
+def timed(cmd: list[str]) -> float:
+    t0 = time.perf_counter()
+    out = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if out.returncode != 0:
+        sys.exit(f"bench_batch: {' '.join(cmd[:3])}... failed ({out.returncode}):\n{out.stderr[-3000:]}")
+    return wall
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sequences", type=int, default=4)
+    ap.add_argument("--frames", type=int, default=16)
+    ap.add_argument("--size", default="128x96")
+    ap.add_argument("--preset", default="smoke")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--cpus-per-fit", default=None, help="passed to s3o-batch (default: its own)")
+    ap.add_argument("--work", default=str(REPO / "runs" / "bench-batch"))
+    args = ap.parse_args(argv)
+    W, H = (int(x) for x in args.size.lower().split("x"))
+    work = Path(args.work)
+    seqs = work / f"sequences-{args.frames}-{W}x{H}"
+    for i in range(args.sequences):
+        if not (seqs / f"quad{i}" / "images").is_dir():
+            make_sequence(seqs / f"quad{i}", frames=args.frames, size=(W, H), azim=(-20.0, 20.0), seed=i, progress=False)
+    for d in ("loop", "batch"):
+        shutil.rmtree(work / d, ignore_errors=True)
+    sets = [s for kv in args.overrides for s in ("--set", kv)]
+    load0 = os.getloadavg()
+    loop_s = timed([sys.executable, "-c", LOOP, str(seqs), str(work / "loop"), args.preset, *args.overrides])
+    cli = [str(Path(sys.executable).parent / "s3o-batch"), str(seqs), "--out", str(work / "batch"), "--preset",
+           args.preset, *sets] + (["--cpus-per-fit", args.cpus_per_fit] if args.cpus_per_fit else [])
+    batch_s = timed(cli)
+    load1 = os.getloadavg()
+    summary = json.loads((work / "batch" / "summary.json").read_text())
+    loop_iou = {p.name: json.loads((p / "metrics.json").read_text())["mask_iou"]["mean"]
+                for p in sorted((work / "loop").iterdir())}
+    rec = {
+        "sequences": args.sequences, "frames": args.frames, "size": [W, H], "preset": args.preset,
+        "overrides": args.overrides, "cpus_per_fit": summary.get("cpus_per_fit"),
+        "loop_wall_s": round(loop_s, 2), "batch_wall_s": round(batch_s, 2),
+        "overhead": round(batch_s / loop_s - 1, 4),
+        "fits": [{"name": r["name"], "status": r["status"], "batch_task_s": r.get("wall_s"),
+                  "batch_iou": r.get("mask_iou"), "loop_iou": loop_iou.get(r["name"])} for r in summary["rows"]],
+        "load_average_1min": [round(load0[0], 2), round(load1[0], 2)],
+    }
+    print(json.dumps(rec, indent=1))
+    doc = {
+        "command": " ".join(["python", "scripts/bench_batch.py", *sys.argv[1:]]),
+        "device": "cpu",
+        "device_name": device_name("cpu"),
+        "versions": {**versions(), "ray": ray.__version__},
+        "git_commit": git_commit(),
+        "note": "wall = a fresh process from start to exit: the loop fits the sequences one after another in one "
+                "process; the batch is s3o-batch on a local Ray (start, worker imports, tasks, summary). "
+                "overhead = batch / loop - 1. Runs and sequences under OUT_DIR (--work).",
+        "results": [rec],
+    }
+    dest = REPO / "benchmarks" / "batch-cpu.json"
+    write_text(dest, json.dumps(doc, indent=2) + "\n")
+    print(f"wrote {dest}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
