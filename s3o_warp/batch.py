@@ -59,7 +59,8 @@ PROG = "s3o-batch"
 COLUMNS = ("name", "status", "wall_s", "fit_s", "device", "node", "attempts", "frames", "bones", "mask_iou", "pck_t",
            "chamfer", "fscore", "joint_distance", "run", "error")
 """The columns of ``summary.csv``. ``status``: finished, failed (the fit raised: bad input, a NaN stop, a bug),
-crashed (its worker died on every try), interrupted (stopped with a checkpoint) or not started. ``wall_s``: this
+crashed (its worker died on every try), interrupted (stopped with a checkpoint), not started, or running (in the
+summary written while the batch runs, after each fit). ``wall_s``: this
 attempt's seconds in its task; ``fit_s``: the fit's own clock over all its attempts. ``pck_t`` needs keypoints,
 ``chamfer``, ``fscore`` (at 2 % of the diagonal) and ``joint_distance`` need ground truth (synthetic sequences).
 ``summary.json`` has the same rows, plus ``reused`` (finished by an earlier batch) and a failed fit's traceback
@@ -102,7 +103,7 @@ def _manifest_rows(path: Path) -> list[tuple[str, dict]]:
         doc = read_json(path, "manifest", "pass a JSON list of objects with a 'path' each")
         if not isinstance(doc, list) or not all(isinstance(r, dict) for r in doc):
             raise InputError(f"{path}: a JSON manifest must be a list of objects like {{\"path\": \"seq\"}}; fix the file")
-        return [(f"{path} row {i + 1}", r) for i, r in enumerate(doc)]
+        return [(f"{path} row {i + 1}", {k: v for k, v in r.items() if v is not None}) for i, r in enumerate(doc)]
     try:
         with open(path, newline="") as f:
             rows = list(csv.DictReader(f))
@@ -130,7 +131,7 @@ def _manifest_items(path: Path) -> list[Item]:
             masks = str(masks if masks.is_absolute() else path.parent / masks)
         name = str(row["name"]) if "name" in row else None
         settings = tuple(f"{k}={v}" for k, v in row.items() if k not in MANIFEST_KEYS)
-        run = str(row.get("run") or name or seq.stem)
+        run = str(row.get("run") or name or (seq.stem if seq.is_file() else seq.name))
         items.append(Item(run=run, path=str(seq), masks=masks, name=name, settings=settings, where=where))
     if not items:
         raise InputError(f"{path}: the manifest has no rows; add one row per sequence")
@@ -422,6 +423,7 @@ def _wait(ray, pending: dict, rows: list, items: list[Item], runs: Path, retries
                 i = pending.pop(ref)
                 rows[i] = _result(ray, ref, items[i], runs, retries)
                 bar.update(1)
+                bar.set_postfix_str(", ".join(f"{n} {k}" for k, n in status_counts([r for r in rows if r]).items()))
                 on_row(rows[i])
             if time.monotonic() > deadline:
                 raise KeyboardInterrupt

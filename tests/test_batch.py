@@ -167,6 +167,36 @@ def test_bad_input_is_one_line_before_ray(sequences, tmp_path, capsys, monkeypat
     assert not runs.exists()
 
 
+def test_inputs_of_every_kind(tmp_path):
+    for seq in ("a", "b"):
+        (tmp_path / "clips" / seq / "images").mkdir(parents=True)
+    (tmp_path / "clips" / "notes").mkdir()  # no images/: not a sequence
+    assert [(i.run, i.path) for i in batch.collect_items(str(tmp_path / "clips"))] == [
+        ("a", str(tmp_path / "clips" / "a")), ("b", str(tmp_path / "clips" / "b"))]
+    assert [i.run for i in batch.collect_items(str(tmp_path / "clips" / "b"))] == ["b"]  # one sequence folder
+
+    davis = tmp_path / "DAVIS"
+    for seq in ("cows", "dog"):
+        (davis / "JPEGImages" / "480p" / seq).mkdir(parents=True)
+    items = batch.collect_items(str(davis), ["dog"])
+    assert [(i.run, i.path, i.name) for i in items] == [("dog", str(davis), "dog")]
+    with pytest.raises(InputError, match="--names horse: no such sequence .* cows, dog"):
+        batch.collect_items(str(davis), ["horse"])
+    with pytest.raises(InputError, match="pass --names"):
+        batch.collect_items(str(davis))
+
+    (tmp_path / "lists").mkdir()
+    manifest = tmp_path / "lists" / "m.json"  # paths relative to the manifest's folder; a row's own settings
+    manifest.write_text(json.dumps([{"path": "../clips/a", "masks": "../clips/a/images", "seed": 3},
+                                    {"path": str(davis), "name": "cows", "run": "cows-2", "motion.steps": 20}]))
+    a, cows = batch.collect_items(str(manifest))
+    assert (a.run, Path(a.path).resolve(), Path(a.masks).resolve(), a.settings) == (
+        "a", tmp_path / "clips" / "a", tmp_path / "clips" / "a" / "images", ("seed=3",))
+    assert (cows.run, cows.name, cows.settings) == ("cows-2", "cows", ("motion.steps=20",))
+    cfg_a, cfg_cows = batch.check_items([a, cows], "smoke", None, ["motion.steps=30"], seed=7)
+    assert (cfg_a.seed, cfg_a.motion.steps) == (3, 30) and (cfg_cows.seed, cfg_cows.motion.steps) == (7, 20)
+
+
 def test_resources_per_fit():
     cpu_node, gpu_node = {"CPU": 2, "GPU": 0}, {"CPU": 16, "GPU": 4}
     assert batch.resources([cpu_node], None, None) == (2, 0)  # one fit at a time on the CPUs of a node
@@ -194,7 +224,9 @@ def test_the_same_command_on_a_cluster_stops_and_resumes(sequences, tmp_path):
     if not ray_cli.exists() or not cli.exists():
         pytest.skip(f"the ray and s3o-batch commands are not installed beside {sys.executable}")
     port = _free_port()
-    env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"}
+    # a throwaway cluster on 127.0.0.1: without Ray's token authentication, which an explicit --address only uses
+    # with RAY_AUTH_MODE=token and the cluster's token (README)
+    env = {**{k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"}, "RAY_AUTH_MODE": "disabled"}
     temp = Path("/tmp") / f"s3o-ray-{os.getpid()}"  # the cluster's sockets: short paths (tmp_path is too long)
     # --block keeps `ray start` in the foreground: stopping it stops this cluster's processes and no other Ray here
     head = subprocess.Popen([str(ray_cli), "start", "--head", "--block", f"--port={port}", "--node-ip-address=127.0.0.1",
@@ -213,7 +245,7 @@ def test_the_same_command_on_a_cluster_stops_and_resumes(sequences, tmp_path):
         pytest.skip(f"ray start --head could not start a cluster here: {why}")
     try:
         runs = tmp_path / "runs"
-        manifest = _manifest(tmp_path, json.dumps([{"path": str(sequences / "s2"), "motion.steps": 200}]), "m.json")
+        manifest = _manifest(tmp_path, json.dumps([{"path": str(sequences / "s2"), "motion.steps": 100}]), "m.json")
         cmd = [str(cli), manifest, "--out", str(runs), "--address", f"127.0.0.1:{port}", *SMOKE]
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
         deadline = time.monotonic() + 300
