@@ -7,7 +7,8 @@
 Short synthetic quadruped sequences (one seed each, rendered once under --work) are fitted twice, each time by a
 fresh process timed from its start to its exit: one after another by ``fit()`` in one Python process, then by
 ``s3o-batch`` on a local Ray (its start, the workers' imports, the tasks and the summary included). The overhead is
-the batch's wall time over the loop's, minus one. Each fit's mask IoU is recorded from both, to show the batch runs
+the batch's wall time over the loop's, minus one; each process's seconds outside its fits (the loop's around each
+``fit()`` call, the batch's around each task) are recorded too. Each fit's mask IoU is recorded from both, to show the batch runs
 the same fits. The machine's load average is recorded too: on a shared machine both walls move with it.
 """
 
@@ -29,26 +30,28 @@ from s3o_warp.provenance import REPO, device_name, git_commit, versions
 from s3o_warp.synth import make_sequence
 
 LOOP = r"""
-import json, sys
+import json, sys, time
 from pathlib import Path
 from s3o_warp.config import make_config
 from s3o_warp.fit import fit, resolve_device
 seqs, runs, preset, sets = sys.argv[1], Path(sys.argv[2]), sys.argv[3], sys.argv[4:]
 out = {}
 for seq in sorted(p for p in Path(seqs).iterdir() if (p / "images").is_dir()):
-    m = fit(seq, runs / seq.name, make_config(preset, overrides=sets), resolve_device("cpu"))
-    out[seq.name] = m["mask_iou"]["mean"]
+    t0 = time.perf_counter()
+    fit(seq, runs / seq.name, make_config(preset, overrides=sets), resolve_device("cpu"))
+    out[seq.name] = round(time.perf_counter() - t0, 2)
 print(json.dumps(out))
 """
 
 
-def timed(cmd: list[str]) -> float:
+def timed(cmd: list[str]) -> tuple[float, str]:
+    """Wall seconds of ``cmd`` from start to exit, and its stdout."""
     t0 = time.perf_counter()
     out = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     if out.returncode != 0:
         sys.exit(f"bench_batch: {' '.join(cmd[:3])}... failed ({out.returncode}):\n{out.stderr[-3000:]}")
-    return wall
+    return wall, out.stdout
 
 
 def main(argv=None) -> int:
@@ -71,10 +74,11 @@ def main(argv=None) -> int:
         shutil.rmtree(work / d, ignore_errors=True)
     sets = [s for kv in args.overrides for s in ("--set", kv)]
     load0 = os.getloadavg()
-    loop_s = timed([sys.executable, "-c", LOOP, str(seqs), str(work / "loop"), args.preset, *args.overrides])
+    loop_s, stdout = timed([sys.executable, "-c", LOOP, str(seqs), str(work / "loop"), args.preset, *args.overrides])
+    loop_fit_s = json.loads(stdout.strip().splitlines()[-1])
     cli = [str(Path(sys.executable).parent / "s3o-batch"), str(seqs), "--out", str(work / "batch"), "--preset",
            args.preset, *sets] + (["--cpus-per-fit", args.cpus_per_fit] if args.cpus_per_fit else [])
-    batch_s = timed(cli)
+    batch_s, _ = timed(cli)
     load1 = os.getloadavg()
     summary = json.loads((work / "batch" / "summary.json").read_text())
     loop_iou = {p.name: json.loads((p / "metrics.json").read_text())["mask_iou"]["mean"]
@@ -84,8 +88,13 @@ def main(argv=None) -> int:
         "overrides": args.overrides, "cpus_per_fit": summary.get("cpus_per_fit"),
         "loop_wall_s": round(loop_s, 2), "batch_wall_s": round(batch_s, 2),
         "overhead": round(batch_s / loop_s - 1, 4),
-        "fits": [{"name": r["name"], "status": r["status"], "batch_task_s": r.get("wall_s"),
-                  "batch_iou": r.get("mask_iou"), "loop_iou": loop_iou.get(r["name"])} for r in summary["rows"]],
+        # what each process spent outside its fits: imports, and for the batch Ray's start, the workers' imports
+        # and its stop (less moved by the machine's load than the walls, which the fits dominate)
+        "loop_outside_fits_s": round(loop_s - sum(loop_fit_s.values()), 2),
+        "batch_outside_fits_s": round(batch_s - sum(r["wall_s"] for r in summary["rows"]), 2),
+        "fits": [{"name": r["name"], "status": r["status"], "loop_s": loop_fit_s.get(r["name"]),
+                  "batch_task_s": r.get("wall_s"), "loop_iou": loop_iou.get(r["name"]), "batch_iou": r.get("mask_iou")}
+                 for r in summary["rows"]],
         "load_average_1min": [round(load0[0], 2), round(load1[0], 2)],
     }
     print(json.dumps(rec, indent=1))
