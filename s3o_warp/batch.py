@@ -330,9 +330,11 @@ def nodes(ray) -> list[dict]:
 
 
 def resources(node_list: list[dict], cpus: float | None, gpus: float | None) -> tuple[float, float]:
-    """(CPUs, GPUs) per fit. GPUs default to 1 on a cluster with GPUs, else 0. CPUs default to a node's CPUs divided
-    by the fits it runs at once (one fit per node on CPUs: Warp's CPU kernels use one core and torch the rest; one
-    per ``gpus`` GPUs), the smallest such node deciding. A request no node can meet is an InputError."""
+    """(CPUs, GPUs) per fit. GPUs default to 1 on a cluster with GPUs, else 0. CPUs default to 1 for a CPU fit (as
+    many fits at once as a node has cores: Warp's CPU kernels run on one core and the fit's torch ops are small, so
+    two one-core fits on 2 cores end sooner than one two-core fit after another, ``benchmarks/batch-cpu.json``),
+    and for a GPU fit to a node's CPUs divided by the fits its GPUs take at once, the smallest such node deciding.
+    A request no node can meet is an InputError."""
     if gpus is None:
         gpus = 1.0 if any(n["GPU"] > 0 for n in node_list) else 0.0
     able = [n for n in node_list if n["CPU"] > 0 and n["GPU"] >= gpus]
@@ -340,7 +342,7 @@ def resources(node_list: list[dict], cpus: float | None, gpus: float | None) -> 
         most = max((n["GPU"] for n in node_list), default=0)
         raise InputError(f"--gpus-per-fit {gpus:g}: no Ray node has that many GPUs (most: {most:g}); lower it")
     if cpus is None:
-        cpus = min(max(1, math.floor(n["CPU"] / (math.floor(n["GPU"] / gpus) if gpus > 0 else 1))) for n in able)
+        cpus = min(max(1, math.floor(n["CPU"] / math.floor(n["GPU"] / gpus))) for n in able) if gpus > 0 else 1
     if not any(n["CPU"] >= cpus for n in able):
         most = max(n["CPU"] for n in able)
         raise InputError(f"--cpus-per-fit {cpus:g}: no Ray node with {gpus:g} GPUs has that many CPUs (most: "
@@ -504,8 +506,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--names", nargs="+", default=None, help="sequences of a DAVIS root, e.g. --names cows dog")
     p.add_argument("--address", default=None, help="a Ray cluster to join: auto, HOST:PORT or ray://HOST:PORT "
                    "(default: start Ray on this machine)")
-    p.add_argument("--cpus-per-fit", type=float, default=None, help="CPUs each fit reserves (default: a node's CPUs "
-                   "divided by the fits it runs at once: one fit per node on CPUs, one per --gpus-per-fit GPUs)")
+    p.add_argument("--cpus-per-fit", type=float, default=None, help="CPUs each fit reserves (default: 1 for a CPU fit, "
+                   "so a node runs a fit per core; with GPUs a node's CPUs shared by the fits its GPUs take)")
     p.add_argument("--gpus-per-fit", type=float, default=None, help="GPUs each fit reserves (default: 1 when the Ray "
                    "cluster has GPUs, else 0)")
     p.add_argument("--retries", type=int, default=2, help="times a fit whose worker died is tried again, each time "

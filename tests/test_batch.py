@@ -59,7 +59,7 @@ def run_files(run: Path) -> dict[str, tuple[int, int]]:
 
 def test_batch_reports_the_broken_fit_and_a_rerun_does_no_work(local_ray, sequences, tmp_path, monkeypatch):
     runs = tmp_path / "runs"
-    rc = batch.main([str(sequences), "--out", str(runs), "--cpus-per-fit", "1", *SMOKE])
+    rc = batch.main([str(sequences), "--out", str(runs), *SMOKE])
     assert rc == 1  # one fit failed
     rows = read_csv(runs / "summary.csv")
     assert list(rows) == ["s0", "s1", "s2"]
@@ -83,7 +83,7 @@ def test_batch_reports_the_broken_fit_and_a_rerun_does_no_work(local_ray, sequen
     # the same command again: the finished runs are left as they are and their rows kept; the broken one is
     # tried again (its input may have been fixed) and fails the same way
     before = {n: run_files(runs / n) for n in ("s0", "s2")}
-    rc = batch.main([str(sequences), "--out", str(runs), "--cpus-per-fit", "1", *SMOKE])
+    rc = batch.main([str(sequences), "--out", str(runs), *SMOKE])
     assert rc == 1
     again = json.loads((runs / "summary.json").read_text())["rows"]
     assert [r["status"] for r in again] == ["finished", "failed", "finished"]
@@ -199,11 +199,11 @@ def test_inputs_of_every_kind(tmp_path):
 
 def test_resources_per_fit():
     cpu_node, gpu_node = {"CPU": 2, "GPU": 0}, {"CPU": 16, "GPU": 4}
-    assert batch.resources([cpu_node], None, None) == (2, 0)  # one fit at a time on the CPUs of a node
-    assert batch.resources([cpu_node, {"CPU": 8, "GPU": 0}], None, None) == (2, 0)  # the smallest node decides
+    assert batch.resources([cpu_node], None, None) == (1, 0)  # a fit per core
     assert batch.resources([cpu_node, gpu_node], None, None) == (4, 1)  # a GPU per fit, the node's CPUs shared
+    assert batch.resources([{"CPU": 6, "GPU": 2}, gpu_node], None, None) == (3, 1)  # the smallest share decides
     assert batch.resources([gpu_node], None, 2) == (8, 2)
-    assert batch.resources([cpu_node], 1, 0) == (1, 0)
+    assert batch.resources([cpu_node], 2, 0) == (2, 0)
     with pytest.raises(InputError, match="--gpus-per-fit 1: no Ray node"):
         batch.resources([cpu_node], None, 1)
     with pytest.raises(InputError, match="--cpus-per-fit 4: .*most: 2"):
