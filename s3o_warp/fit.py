@@ -516,7 +516,7 @@ def resolve_device(name: str | None) -> torch.device:
     return torch.device("cpu")
 
 
-def _check_writable(out_dir: Path) -> None:
+def check_writable(out_dir: Path) -> None:
     """The run directory (or its nearest existing parent) must be writable: one clear line otherwise."""
     p = out_dir
     while not p.exists() and p != p.parent:
@@ -538,7 +538,7 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
     """
     check(cfg)  # every setting, before anything is read or written
     out_dir = Path(out_dir)
-    _check_writable(out_dir)
+    check_writable(out_dir)
     branch = branch_checkpoint(Path(branch_from), out_dir, cfg) if branch_from is not None else None
     if branch is not None:
         link_cache(Path(branch_from) / "cache", out_dir / "cache")
