@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from s3o_warp import interrupt
 from s3o_warp.geometry import axis_angle_to_matrix
 
 log = logging.getLogger(__name__)
@@ -130,7 +131,11 @@ def select_hypothesis(fit, search: Search | None = None) -> float:
             bar.update(1)
             fit.stop_point(search)
         fit.step = 0
-        terms = fit.mean_terms()
+        try:
+            terms = fit.mean_terms()
+        except interrupt.Interrupted:  # stopped while scoring: the checkpoint has every step, the score is redone
+            fit.stop_point(search)
+            raise
         return terms["flow"] if "flow" in terms else sum(terms.values())
 
     def start(rate: float | None, snap=None) -> None:

@@ -99,9 +99,10 @@ def test_known_turn_rate_skips_the_scoring(tiny_sequence, tmp_path):
 
 def test_a_signal_during_the_hypotheses_stops_within_2_s_and_resume_ends_where_an_uninterrupted_fit_ends(
         tiny_sequence, tmp_path, monkeypatch):
-    """SIGINT once the search has begun (seen through its progress bar): the fit stops at the next step with a
-    checkpoint holding the search; a second one lands in the second round of the resumed fit. Resumed twice, the
-    fit chooses the same turn and ends with the same parameters as an uninterrupted fit of the same seed."""
+    """SIGINT once the search has begun (seen through its progress bar and its scoring): the fit stops with a
+    checkpoint holding the search, in the first round's steps, then (resumed) in a rate's scoring, then in the
+    second round. Resumed each time, the fit chooses the same turn and ends with the same parameters as an
+    uninterrupted fit of the same seed."""
     import os
     import signal
     import time
@@ -118,22 +119,35 @@ def test_a_signal_during_the_hypotheses_stops_within_2_s_and_resume_ends_where_a
     a, b = tmp_path / "a", tmp_path / "b"
     fit(tiny_sequence, a, cfg, torch.device("cpu"))
 
-    at = {5: None, 11: None}  # steps of the search (3 rates x 3 steps, then 2 finalists x 3 steps) -> signal time
+    sent = []  # when each SIGINT was sent
 
-    class Hooked(H.tqdm):
+    def send():
+        sent.append(time.perf_counter())
+        os.kill(os.getpid(), signal.SIGINT)
+
+    class Hooked(H.tqdm):  # steps of the search: 3 rates x 3 steps, then 2 finalists x 3 steps
         def update(self, n=1):
             super().update(n)
-            if self.n in at and at[self.n] is None:
-                at[self.n] = time.perf_counter()
-                os.kill(os.getpid(), signal.SIGINT)
+            if self.n in (5, 11) and len(sent) == (0 if self.n == 5 else 2):
+                send()
+
+    orig, scored = Fitter.mean_terms, []
+
+    def scoring(self):
+        scored.append(1)
+        if len(scored) == 2:  # the second rate's score, in the first resumed fit
+            send()
+        return orig(self)
 
     monkeypatch.setattr(H, "tqdm", Hooked)
-    for step, where in ((5, "turn rate 2 of 3, step 2"), (11, "finalist 1 of 2, step 2")):
+    monkeypatch.setattr(Fitter, "mean_terms", scoring)
+    stops = (("turn rate 2 of 3, step 2", 2), ("turn rate 2 of 3, step 3", 3), ("finalist 1 of 2, step 2", 2))
+    for k, (where, done) in enumerate(stops):
         with pytest.raises(FitInterrupted, match=f"camera hypotheses \\({where}\\)"):
-            fit(tiny_sequence, b, cfg, torch.device("cpu"), resume=step != 5)
-        assert time.perf_counter() - at[step] < 2.0
+            fit(tiny_sequence, b, cfg, torch.device("cpu"), resume=k > 0)
+        assert time.perf_counter() - sent[k] < 2.0
         st = torch.load(latest_checkpoint(b), weights_only=False)
-        assert st["phase"] == "warmup" and st["step"] == 0 and st["hypotheses"]["steps_done"] == 2
+        assert (st["phase"], st["step"], st["hypotheses"]["steps_done"]) == ("warmup", 0, done)
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handlers are back
     fit(tiny_sequence, b, cfg, torch.device("cpu"), resume=True)
 
