@@ -14,9 +14,10 @@ import logging
 import sys
 from pathlib import Path
 
+from s3o_warp import interrupt
 from s3o_warp.config import PRESETS, make_config
 from s3o_warp.errors import InputError
-from s3o_warp.fit import FitInterrupted, fit, resolve_device
+from s3o_warp.fit import fit, resolve_device
 from s3o_warp.synth import make_sequence
 
 log = logging.getLogger("s3o_warp")
@@ -48,11 +49,12 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(message)s")
     try:
-        return _run(args)
+        with interrupt.on_signals():  # Ctrl-C, SIGTERM: the work stops at its next check (a checkpoint where it fits)
+            return _run(args)
     except InputError as e:
         print(f"s3o-fit: error: {e}", file=sys.stderr)
         return 2
-    except FitInterrupted as e:
+    except interrupt.Interrupted as e:
         print(f"s3o-fit: {e}; continue with --resume", file=sys.stderr)
         return 130
     except KeyboardInterrupt:

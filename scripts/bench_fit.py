@@ -2,7 +2,7 @@
 """Fit benchmark: accuracy and wall time of whole fits, written to ``benchmarks/fit-<device>.json``.
 
     python scripts/bench_fit.py --device cpu --cases quadruped [fox horse cows dog] [--methods s3o virtual]
-                                [--seeds 0 1 2] [--preset default] [--set key=value ...] [--out-dir DIR]
+                                [--seeds 0 1 2] [--preset default] [--set key=value ...] [--out-dir DIR] [--profile]
 
 Cases: ``quadruped`` (the built-in default shot, the README's main command), ``fox`` (Khronos Fox Walk,
 48 frames, 320x240, 90-degree orbit), ``fox120`` (the same clip with a 120-degree orbit), ``horse`` (Quaternius Horse Walk, 48 frames, 320x240, 120-degree
@@ -11,11 +11,16 @@ message when it is absent. Each fit's metrics, per-phase wall time (from log.jso
 are recorded with the command, device, versions and git commit. Results are merged into the JSON file
 (one entry per case/method/seed/preset/overrides and commit; a rerun at the same commit replaces its
 entry, other commits' entries stay as history), so cases can be run in separate invocations, side by side too.
+
+``--profile`` writes ``benchmarks/profile-<device>.json`` instead: the same rows with, per phase of the fit, its
+wall time, steps and a step's split into Warp kernels, torch ops, host syncs and Python
+(:mod:`s3o_warp.run.profile`); each fit starts from an empty run directory, so the optical flow is computed.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import fcntl
 import json
 import logging
@@ -34,6 +39,7 @@ from s3o_warp.data.io import write_image, write_text
 from s3o_warp.data.keypoints import badja_to_keypoints, write_keypoints
 from s3o_warp.fit import fit, resolve_device
 from s3o_warp.provenance import REPO, cpu_name, git_commit, versions
+from s3o_warp.run.profile import FitProfile
 from s3o_warp.synth import make_sequence
 
 DATA = Path(os.environ.get("S3O_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -126,11 +132,14 @@ def main(argv=None) -> int:
                     help="with --t-o: name the repository's figure renders/skeleton_t_o-CASE-TAG-DEVICE.png, so a study "
                          "with other settings (e.g. --set skeleton.t_d=0.25 --figure-tag td25) does not "
                          "overwrite the sequence's figure")
+    ap.add_argument("--profile", action="store_true",
+                    help="write benchmarks/profile-<device>.json: per phase, wall time, steps and a step's split into "
+                         "kernels, torch ops, syncs and Python (no fit-<device>.json row: profiling slows the fit)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")  # the fit's log (M-step edits) to stderr
     device = resolve_device(args.device)
     work = Path(args.out_dir)
-    dest = REPO / "benchmarks" / f"fit-{device.type}.json"
+    dest = REPO / "benchmarks" / f"{'profile' if args.profile else 'fit'}-{device.type}.json"
     header = dict(
         command=" ".join(["python"] + sys.argv),
         device=str(device),
@@ -153,8 +162,12 @@ def main(argv=None) -> int:
                 parent = trunk.get(seed) if t_o is not None and not args.no_branch else None
                 if parent is None and args.branch_from:
                     parent = Path(args.branch_from.format(case=case, seed=seed))
+                if args.profile:  # from nothing: the optical flow is computed, not read from the cache
+                    run = run.with_name(run.name + "-profile")
+                    shutil.rmtree(run, ignore_errors=True)
                 t0 = time.perf_counter()
-                metrics = fit(seq, run, cfg, device, branch_from=parent)
+                with FitProfile(device) if args.profile else contextlib.nullcontext() as prof:
+                    metrics = fit(seq, run, cfg, device, branch_from=parent)
                 wall = time.perf_counter() - t0
                 if t_o is not None and parent is None and (run / "checkpoints" / "branch.pt").is_file():
                     trunk[seed] = run
@@ -176,6 +189,7 @@ def main(argv=None) -> int:
                     "resamplings": resamplings(run),
                     "git_commit": header["git_commit"],  # the code this process loaded, not HEAD when the fit ends
                     "device_name": header["device_name"],
+                    **({"profile": prof.report()} if prof is not None else {}),
                 }
                 print(json.dumps(entry), flush=True)
                 record(dest, header, entry)

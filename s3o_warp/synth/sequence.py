@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from .. import interrupt
 from ..data.io import atomic_dir, imwrite
 from ..errors import InputError
 from ..geometry import project_np
@@ -195,6 +196,7 @@ def make_sequence(out_dir: str | os.PathLike, source: str | os.PathLike = "quadr
         kp_frames: dict[str, list] = {}
         bar = tqdm(total=num_t, desc="render", unit="frame", disable=not progress)
         for t0 in range(0, num_t, shot.chunk):
+            interrupt.check(f"the rendering of {out} (nothing written)")
             t1 = min(num_t, t0 + shot.chunk)
             image, mask, face_index, depth = shade_chunk(
                 verts_cam[t0:t1], mesh.faces, k, cam_from_world[t0:t1], mesh.rest_verts, colors, texture,
