@@ -1,12 +1,14 @@
 #!/usr/bin/env python
 """Fit benchmark: accuracy and wall time of whole fits, written to ``benchmarks/fit-<device>.json``.
 
-    python scripts/bench_fit.py --device cpu --cases quadruped [fox horse cows dog] [--methods s3o virtual]
+    python scripts/bench_fit.py --device cpu --cases quadruped [fox horse robot lizard cows dog dance-twirl] [--methods s3o virtual]
                                 [--seeds 0 1 2] [--preset default] [--set key=value ...] [--out-dir DIR] [--profile]
 
 Cases: ``quadruped`` (the built-in default shot, the README's main command), ``fox`` (Khronos Fox Walk,
 48 frames, 320x240, 90-degree orbit), ``fox120`` (the same clip with a 120-degree orbit), ``horse`` (Quaternius Horse Walk, 48 frames, 320x240, 120-degree
-orbit), ``cows`` / ``dog`` (DAVIS with BADJA keypoints). Cases that need ../shared/data skip with a
+orbit), ``robot`` (three.js's RobotExpressive biped, Walking, 48 frames, 320x240, 120-degree orbit), ``lizard``
+(the built-in lizard's crawl, 48 frames, 320x240, 120-degree orbit from 30 degrees up), ``cows`` / ``dog``
+(DAVIS with BADJA keypoints), ``dance-twirl`` (DAVIS, a dancer; no keypoints, so no PCK-T). Cases that need ../shared/data skip with a
 message when it is absent. Each fit's metrics, per-phase wall time (from log.jsonl) and total time
 are recorded with the command, device, versions and git commit. Results are merged into the JSON file
 (one entry per case/method/seed/preset/overrides and commit; a rerun at the same commit replaces its
@@ -41,6 +43,7 @@ from s3o_warp.fit import fit, resolve_device
 from s3o_warp.provenance import REPO, cpu_name, git_commit, versions
 from s3o_warp.run.profile import FitProfile
 from s3o_warp.synth import make_sequence
+from s3o_warp.synth.sequence import PROCEDURAL
 
 DATA = Path(os.environ.get("S3O_SHARED_DATA", REPO.parent / "shared" / "data"))
 
@@ -49,8 +52,11 @@ SYNTH = {
     "fox": dict(source="gltf/khronos_Fox.glb", clip="Walk", frames=48, fps=30.0, size=(320, 240), azim=(-45.0, 45.0), elev=15.0),
     "fox120": dict(source="gltf/khronos_Fox.glb", clip="Walk", frames=48, fps=30.0, size=(320, 240), azim=(-60.0, 60.0), elev=15.0),
     "horse": dict(source="gltf/quaternius_Horse.glb", clip="Walk", frames=48, fps=30.0, size=(320, 240), azim=(-60.0, 60.0), elev=15.0),
+    "robot": dict(source="gltf/threejs_RobotExpressive.glb", clip="Walking", frames=48, fps=30.0, size=(320, 240),
+                  azim=(-60.0, 60.0), elev=15.0),
+    "lizard": dict(source="lizard", frames=48, fps=30.0, size=(320, 240), azim=(-60.0, 60.0), elev=30.0),
 }
-DAVIS = {"cows": "cows", "dog": "dog"}
+DAVIS = {"cows": "cows", "dog": "dog", "dance-twirl": "dance-twirl"}
 
 
 def prepare_case(case: str, work: Path) -> Path | None:
@@ -59,7 +65,7 @@ def prepare_case(case: str, work: Path) -> Path | None:
     if case in SYNTH:
         spec = dict(SYNTH[case])
         src = spec.pop("source")
-        if src != "quadruped":
+        if src not in PROCEDURAL:
             src = DATA / src
             if not src.is_file() and not (seq / "images").is_dir():  # a sequence rendered earlier needs no source
                 print(f"bench_fit: skip {case}: {src} not found (set S3O_SHARED_DATA)", file=sys.stderr)
@@ -73,13 +79,13 @@ def prepare_case(case: str, work: Path) -> Path | None:
         if not img.is_dir():
             print(f"bench_fit: skip {case}: {img} not found", file=sys.stderr)
             return None
-        if not (seq / "keypoints.json").is_file():
-            seq.mkdir(parents=True, exist_ok=True)
-            for sub, src in (("images", img), ("masks", DATA / "davis" / "Annotations" / "480p" / name)):
-                if not (seq / sub).exists():
-                    os.symlink(src, seq / sub) if hasattr(os, "symlink") else shutil.copytree(src, seq / sub)
-            kp = badja_to_keypoints(DATA / "badja" / f"{name}.json", frame_size=(480, 854))
-            write_keypoints(kp, seq / "keypoints.json")
+        seq.mkdir(parents=True, exist_ok=True)
+        for sub, src in (("images", img), ("masks", DATA / "davis" / "Annotations" / "480p" / name)):
+            if not (seq / sub).exists():
+                os.symlink(src, seq / sub) if hasattr(os, "symlink") else shutil.copytree(src, seq / sub)
+        badja = DATA / "badja" / f"{name}.json"
+        if badja.is_file() and not (seq / "keypoints.json").is_file():  # a sequence without one has no PCK-T
+            write_keypoints(badja_to_keypoints(badja, frame_size=(480, 854)), seq / "keypoints.json")
         return seq
     raise SystemExit(f"bench_fit: unknown case {case}; choose from {', '.join(list(SYNTH) + list(DAVIS))}")
 
