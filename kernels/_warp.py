@@ -8,6 +8,9 @@ adjoint buffers), and launches run on the current torch stream of the inputs' de
 from __future__ import annotations
 
 import contextlib
+import os
+import sys
+import tempfile
 import threading
 
 import torch
@@ -16,10 +19,16 @@ import warp as wp
 _init_lock = threading.Lock()
 _initialised = False
 
+NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
+"""What Warp's native library prints to stderr at ``wp.init()`` on a machine without CUDA."""
+driver_warning: str | None = None
+"""That line, held back by :func:`init` (nothing a CPU user can act on); whoever asks for CUDA shows it."""
+
 
 def init() -> None:
-    """Initialise Warp once (quietly); later calls are free."""
-    global _initialised
+    """Initialise Warp once (quietly: no banner, and no missing-driver line, kept in :data:`driver_warning`);
+    later calls are free."""
+    global _initialised, driver_warning
     if _initialised:
         return
     with _init_lock:
@@ -28,8 +37,36 @@ def init() -> None:
 
             # Warp >= 1.19 logs its banner and "Module ... load" lines at INFO; keep warnings only.
             wp.config.log_level = max(wp.config.log_level, logging.WARNING)
-            wp.init()
+            driver_warning = holding_back(wp.init, NO_DRIVER)
             _initialised = True
+
+
+def holding_back(fn, marker: str) -> str | None:
+    """Call ``fn()`` with the process's stderr (file descriptor 2, where native code prints) captured; lines that
+    contain ``marker`` are returned (None if none), every other line is written back to stderr."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no file descriptor 2: nothing to hold back
+        fn()
+        return None
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            fn()
+        finally:
+            with contextlib.suppress(OSError, ValueError):
+                sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            lines = tmp.read().decode(errors="replace").splitlines(keepends=True)
+    rest = "".join(line for line in lines if marker not in line)
+    if rest:
+        sys.stderr.write(rest)
+        sys.stderr.flush()
+    held = "".join(line for line in lines if marker in line).strip()
+    return held or None
 
 
 def wp_device(t: torch.Tensor) -> wp.context.Device:

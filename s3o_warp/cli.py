@@ -16,12 +16,13 @@ import logging
 import sys
 from pathlib import Path
 
+from s3o_warp import interrupt
 from s3o_warp.config import PRESETS, make_config
 from s3o_warp.data.io import read_json
 from s3o_warp.errors import InputError
-from s3o_warp.fit import FitInterrupted, fit, resolve_device
+from s3o_warp.fit import fit, resolve_device
 from s3o_warp.masks.cli import add_box_arguments, boxes_from
-from s3o_warp.masks.make import interrupt_on_sigterm, make_masks
+from s3o_warp.masks.make import make_masks
 from s3o_warp.synth import make_sequence
 
 log = logging.getLogger("s3o_warp")
@@ -54,11 +55,12 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(message)s")
     try:
-        return _run(args)
+        with interrupt.on_signals():  # Ctrl-C, SIGTERM: the work stops at its next check (a checkpoint where it fits)
+            return _run(args)
     except InputError as e:
         print(f"s3o-fit: error: {e}", file=sys.stderr)
         return 2
-    except FitInterrupted as e:
+    except interrupt.Interrupted as e:
         print(f"s3o-fit: {e}; continue with --resume", file=sys.stderr)
         return 130
     except KeyboardInterrupt:
@@ -106,8 +108,7 @@ def _masks_first(source: Path, out: Path, boxes: dict, args, cfg) -> Path:
     after; kept when made from the same input and boxes); a video's own frame rate becomes ``data.fps``."""
     name = source.parent.name if source.name == "images" else source.stem if source.is_file() else source.name
     seq = out / "sequence" / name
-    with interrupt_on_sigterm():
-        make_masks(source, seq, boxes, args.segmenter, args.checkpoint, cfg.data.flow_preset, reuse=True)
+    make_masks(source, seq, boxes, args.segmenter, args.checkpoint, cfg.data.flow_preset, reuse=True)
     fps = read_json(seq / "masks.json", "masks record", "delete the folder to make the masks again").get("fps")
     if fps:
         cfg.data.fps = float(fps)

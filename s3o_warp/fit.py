@@ -24,8 +24,6 @@ import logging
 import math
 import os
 import resource
-import signal
-import threading
 import time
 from pathlib import Path
 
@@ -34,7 +32,7 @@ import torch
 import warp as wp
 from tqdm import tqdm
 
-from s3o_warp import resample
+from s3o_warp import interrupt, resample
 from s3o_warp.coarse.model import (
     COARSE_SIGMA,
     COARSE_SIGMA_FINAL,
@@ -51,7 +49,7 @@ from s3o_warp.kernels import _warp
 from s3o_warp.model import S3OModel
 from s3o_warp.motion import objective
 from s3o_warp.motion.crossings import resolve_model_crossings
-from s3o_warp.motion.hypotheses import select_hypothesis
+from s3o_warp.motion.hypotheses import Search, select_hypothesis
 from s3o_warp.motion.losses import soft_iou
 from s3o_warp.motion.windows import FrameWindows
 from s3o_warp.ops import mesh_edges
@@ -87,7 +85,7 @@ class FitDiverged(InputError):
     """The loss or its gradient stayed NaN/Inf for several steps in a row; the message names the term."""
 
 
-class FitInterrupted(Exception):
+class FitInterrupted(interrupt.Interrupted):
     """Raised after a stop request (Ctrl-C, SIGTERM) once the checkpoint of the current step is written."""
 
 
@@ -114,7 +112,7 @@ class Fitter:
         self.t0 = time.perf_counter()
         self.history: list[dict] = []
         self.opt = self.make_optimizer()
-        self._stop = False
+        self._hypotheses: Search | None = None  # a search read from a checkpoint taken inside it
         self._bad = 0
         self._pending_m_step = False  # a branch checkpoint was loaded: its M-step runs before the next step
         self._good = None
@@ -167,7 +165,16 @@ class Fitter:
 
     def request_stop(self) -> None:
         """Ask the loop to checkpoint and stop at the next step boundary (safe from a signal handler)."""
-        self._stop = True
+        interrupt.request()
+
+    def stop_point(self, hypotheses: Search | None = None) -> None:
+        """A point the fit can continue from (a step boundary, or one inside the camera ``hypotheses``): when a stop
+        was requested, its checkpoint is written and FitInterrupted raised."""
+        if not interrupt.requested():
+            return
+        path = self.save_checkpoint(hypotheses)
+        where = f"{self.phase} step {self.step}" if hypotheses is None else f"the camera hypotheses ({hypotheses.where()})"
+        raise FitInterrupted(f"stopped at {where}; checkpoint {path}")
 
     # -- optimiser per phase: named parameter groups ------------------------------------------------
     def make_optimizer(self) -> torch.optim.Optimizer:
@@ -254,71 +261,77 @@ class Fitter:
             n = self.phase_steps(phase)
             if phase == "warmup" and self.step == 0 and (self.cfg.motion.hypotheses > 1
                                                          or self.cfg.motion.turn_rate is not None):
-                select_hypothesis(self)
-            bar = tqdm(total=n, initial=self.step, desc=f"{phase:>6}", dynamic_ncols=True, leave=True)
-            if self._pending_m_step:  # branched from another run's branch checkpoint: its M-step, with this t_o
-                self._pending_m_step = False
-                self._m_step(n)
-            while self.step < n:
-                self.opt.zero_grad(set_to_none=True)
-                frames = None
-                if phase == "coarse":
-                    terms, sil, mask = self.coarse_losses()
-                else:
-                    frames = self.windows.next(phase == "warmup", self.step, self.cfg.motion.warmup_steps,
-                                                self.model)
-                    terms, sil, mask = self.motion_losses(frames)
-                total = sum(w * v for w, v in terms.values())
-                bad = self._non_finite(terms, total)
-                if bad is None:
-                    total.backward()
-                    if phase == "coarse" and self.model.verts.grad is not None:  # one view says nothing about depth:
-                        self.model.verts.grad[:, 2] = 0  # object z = the canonical camera's depth axis
-                    bad = self._non_finite_grad()
-                if bad is not None:
-                    self._recover(bad)
-                    continue
-                self.step_window(frames)
-                self.step += 1
-                self._bad = 0
-                if self.step % SNAPSHOT_EVERY == 0 or self._good is None:
-                    self._snapshot()
-                bar.update(1)
-                if self.step % self.cfg.motion.log_every == 0 or self.step == n:
-                    iou = float(soft_iou(sil.detach(), mask).mean())
-                    total = total.detach()
-                    rec = {
-                        "phase": phase,
-                        "step": self.step,
-                        "seconds": round(time.perf_counter() - self.t0, 3),
-                        "loss": float(total),
-                        "iou": iou,
-                        "lr": {g["name"]: g["lr"] for g in self.opt.param_groups},
-                        "terms": {k: float(v.detach()) for k, (w, v) in terms.items()},
-                        "weighted": {k: float(w * v.detach()) for k, (w, v) in terms.items()},
-                    }
-                    self.record(rec)
-                    bar.set_postfix(loss=f"{float(total):.4f}", iou=f"{iou:.3f}")
-                if phase == "joint" and self._epoch_end(n):
-                    if self.cfg.motion.resolve_crossings and self.step == self.steps_per_epoch(n):
-                        # once more when the legs fit better than after the warm-up, with the lift's bones (before
-                        # any M-step)
-                        self.resolve_crossings()
-                    if self.cfg.output.branch_checkpoint and self.is_branch_point(n):
-                        self.save_branch_checkpoint()
-                    self._m_step(n)
-                if self._stop:
-                    bar.close()
-                    path = self.save_checkpoint()
-                    raise FitInterrupted(f"stopped at {phase} step {self.step}; checkpoint {path}")
-                if self.step % self.cfg.output.checkpoint_every == 0 and self.step < n:
-                    self.save_checkpoint()
-            bar.close()
+                select_hypothesis(self, self._hypotheses)
+                self._hypotheses = None
+            with tqdm(total=n, initial=self.step, desc=f"{phase:>6}", dynamic_ncols=True, leave=True) as bar:
+                self._run_phase(phase, n, bar)
         self._event("final", step=0, iou_all_frames=self.hard_iou())
         if self.phase != "done":
             self.final_skeleton()
         self.phase, self.step = "done", 0
         self.save_checkpoint()
+
+    def _run_phase(self, phase: str, n: int, bar: tqdm) -> None:
+        """The steps of ``phase`` from :attr:`step` to ``n`` (the M-steps at the joint phase's epoch ends)."""
+        if self._pending_m_step:  # branched from another run's branch checkpoint: its M-step, with this t_o
+            self._pending_m_step = False
+            self._m_step(n)
+        while self.step < n:
+            self.opt.zero_grad(set_to_none=True)
+            frames = None
+            if phase == "coarse":
+                terms, sil, mask = self.coarse_losses()
+            else:
+                frames = self.windows.next(phase == "warmup", self.step, self.cfg.motion.warmup_steps,
+                                            self.model)
+                terms, sil, mask = self.motion_losses(frames)
+            total = sum(w * v for w, v in terms.values())
+            bad = self._non_finite(terms, total)
+            if bad is None:
+                total.backward()
+                if phase == "coarse" and self.model.verts.grad is not None:  # one view says nothing about depth:
+                    self.model.verts.grad[:, 2] = 0  # object z = the canonical camera's depth axis
+                bad = self._non_finite_grad()
+            if bad is not None:
+                self._recover(bad)
+                continue
+            self.step_window(frames)
+            self.step += 1
+            self._bad = 0
+            if self.step % SNAPSHOT_EVERY == 0 or self._good is None:
+                self._snapshot()
+            bar.update(1)
+            if self.step % self.cfg.motion.log_every == 0 or self.step == n:
+                iou = float(soft_iou(sil.detach(), mask).mean())
+                total = total.detach()
+                rec = {
+                    "phase": phase,
+                    "step": self.step,
+                    "seconds": round(time.perf_counter() - self.t0, 3),
+                    "loss": float(total),
+                    "iou": iou,
+                    "lr": {g["name"]: g["lr"] for g in self.opt.param_groups},
+                    "terms": {k: float(v.detach()) for k, (w, v) in terms.items()},
+                    "weighted": {k: float(w * v.detach()) for k, (w, v) in terms.items()},
+                }
+                self.record(rec)
+                bar.set_postfix(loss=f"{float(total):.4f}", iou=f"{iou:.3f}")
+            if phase == "joint" and self._epoch_end(n):
+                if self.cfg.motion.resolve_crossings and self.step == self.steps_per_epoch(n):
+                    # once more when the legs fit better than after the warm-up, with the lift's bones (before
+                    # any M-step)
+                    self.resolve_crossings()
+                if self.cfg.output.branch_checkpoint and self.is_branch_point(n):
+                    self.save_branch_checkpoint()
+                before = copy.deepcopy({**self.state(), "pending_m_step": True})
+                try:
+                    self._m_step(n)
+                except interrupt.Interrupted as e:  # inside the M-step or the resampling: resumed, it runs again
+                    path = self.save_checkpoint(state=before)
+                    raise FitInterrupted(f"stopped at {phase} step {self.step} ({e}); checkpoint {path}") from None
+            self.stop_point()
+            if self.step % self.cfg.output.checkpoint_every == 0 and self.step < n:
+                self.save_checkpoint()
 
     def final_skeleton(self) -> None:
         """The shape moved since the last M-step: bones left owning no vertex go (not in the paper), and the joints
@@ -436,9 +449,16 @@ class Fitter:
             "pending_m_step": False,
         }
 
-    def save_checkpoint(self) -> Path:
+    def save_checkpoint(self, hypotheses: Search | None = None, state: dict | None = None) -> Path:
+        """The checkpoint of the current step (``state``, else :meth:`state`); one taken inside the camera
+        ``hypotheses`` is the warm-up's step 0 with the search (its model and optimiser are the hypothesis in
+        training)."""
         idx = PHASES.index(self.phase) if self.phase in PHASES else len(PHASES)
-        return save_step(self.run_dir, self.state(), idx, self.phase, self.step, self.cfg.output.keep_checkpoints)
+        st, step = state or self.state(), self.step
+        if hypotheses is not None:
+            st["step"] = step = 0
+            st["hypotheses"] = hypotheses.state_dict()
+        return save_step(self.run_dir, st, idx, self.phase, step, self.cfg.output.keep_checkpoints)
 
     def save_branch_checkpoint(self) -> Path:
         """The state just before the first M-step that reads ``skeleton.t_o`` (:mod:`s3o_warp.run.branch`)."""
@@ -483,7 +503,10 @@ class Fitter:
         self.phase, self.step = st["phase"], st["step"]
         if self.phase in PHASES:
             self.opt = self.make_optimizer()
-            self.opt.load_state_dict(st["optimizer"])
+            if "hypotheses" in st:  # taken inside the search: the optimiser is the hypothesis'
+                self._hypotheses = Search.from_state(st["hypotheses"], st["optimizer"])
+            else:
+                self.opt.load_state_dict(st["optimizer"])
         self.gen.set_state(st["generator"])
         torch.set_rng_state(st["torch_rng"])
         self._pending_m_step = bool(st.get("pending_m_step", False))
@@ -499,14 +522,16 @@ class Fitter:
 
 
 def resolve_device(name: str | None) -> torch.device:
-    """``None`` -> CUDA when Warp sees a GPU, else the CPU; ``cuda`` without CUDA -> one clear error."""
+    """``None`` -> CUDA when Warp sees a GPU, else the CPU; ``cuda`` without CUDA -> one clear error (with Warp's
+    missing-driver line, which is not printed otherwise)."""
     _warp.init()
     has_cuda = torch.cuda.is_available() and wp.get_cuda_device_count() > 0
     if name is None:
         return torch.device("cuda:0" if has_cuda else "cpu")
     if name.startswith("cuda"):
         if not has_cuda:
-            raise InputError(f"--device {name}: no CUDA device is visible to Warp and torch here; use --device cpu")
+            why = f" (Warp: {_warp.driver_warning.removeprefix('Warp CUDA warning: ').rstrip('.')})" if _warp.driver_warning else ""
+            raise InputError(f"--device {name}: no CUDA device is visible to Warp and torch here{why}; use --device cpu")
         idx = int(name.split(":")[1]) if ":" in name else 0
         if idx >= torch.cuda.device_count():
             raise InputError(f"--device {name}: only {torch.cuda.device_count()} CUDA device(s); use cuda:0")
@@ -516,7 +541,7 @@ def resolve_device(name: str | None) -> torch.device:
     return torch.device("cpu")
 
 
-def _check_writable(out_dir: Path) -> None:
+def check_writable(out_dir: Path) -> None:
     """The run directory (or its nearest existing parent) must be writable: one clear line otherwise."""
     p = out_dir
     while not p.exists() and p != p.parent:
@@ -538,36 +563,36 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
     """
     check(cfg)  # every setting, before anything is read or written
     out_dir = Path(out_dir)
-    _check_writable(out_dir)
+    check_writable(out_dir)
     branch = branch_checkpoint(Path(branch_from), out_dir, cfg) if branch_from is not None else None
     if branch is not None:
         link_cache(Path(branch_from) / "cache", out_dir / "cache")
-    torch.manual_seed(cfg.seed)
-    np.random.seed(cfg.seed)
-    data = prepare_data(Path(sequence_dir), cfg, out_dir, device, masks=masks, name=name)  # validates input first
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise InputError(f"run directory {out_dir} cannot be created ({e.strerror}); choose another --out") from None
-    write_text(out_dir / "config.toml", to_toml(cfg))
-    with repeatable(cfg.repeatable and device.type == "cpu"):
-        coarse_res = coarse_model(data, cfg)
-        fitter = Fitter(data, coarse_res, cfg, out_dir, device)
-        ck = latest_checkpoint(out_dir) if resume else None
-        if resume and ck is None and branch is None:
-            log.warning("--resume: no checkpoint in %s, starting from the beginning", out_dir / "checkpoints")
-        if ck is None and branch is not None:
-            ck = branch
-            copy_file(branch.with_name(BRANCH_LOG), out_dir / "log.jsonl")
-        if ck is not None:
-            log.info("resuming from %s", ck)
-            fitter.load_checkpoint(ck)
-        elif (out_dir / "log.jsonl").exists():
-            (out_dir / "log.jsonl").unlink()
-        if fitter.phase != "done":
-            with _stop_on_signals(fitter):
+    with interrupt.on_signals():  # Ctrl-C, SIGTERM: every long loop below stops at its next check
+        torch.manual_seed(cfg.seed)
+        np.random.seed(cfg.seed)
+        data = prepare_data(Path(sequence_dir), cfg, out_dir, device, masks=masks, name=name)  # validates input first
+        try:
+            out_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise InputError(f"run directory {out_dir} cannot be created ({e.strerror}); choose another --out") from None
+        write_text(out_dir / "config.toml", to_toml(cfg))
+        with repeatable(cfg.repeatable and device.type == "cpu"):
+            coarse_res = coarse_model(data, cfg)
+            fitter = Fitter(data, coarse_res, cfg, out_dir, device)
+            ck = latest_checkpoint(out_dir) if resume else None
+            if resume and ck is None and branch is None:
+                log.warning("--resume: no checkpoint in %s, starting from the beginning", out_dir / "checkpoints")
+            if ck is None and branch is not None:
+                ck = branch
+                copy_file(branch.with_name(BRANCH_LOG), out_dir / "log.jsonl")
+            if ck is not None:
+                log.info("resuming from %s", ck)
+                fitter.load_checkpoint(ck)
+            elif (out_dir / "log.jsonl").exists():
+                (out_dir / "log.jsonl").unlink()
+            if fitter.phase != "done":
                 fitter.run()
-        return outputs.write_run(fitter)
+            return outputs.write_run(fitter)
 
 
 @contextlib.contextmanager
@@ -587,27 +612,3 @@ def repeatable(enabled: bool = True):
     finally:
         torch.use_deterministic_algorithms(was, warn_only=warn)
 
-
-class _stop_on_signals:
-    """SIGINT / SIGTERM during the loop -> checkpoint at the step boundary, then FitInterrupted."""
-
-    def __init__(self, fitter: Fitter):
-        self.fitter = fitter
-        self.old = {}
-
-    def __enter__(self):
-        if threading.current_thread() is not threading.main_thread():
-            return self
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            self.old[sig] = signal.getsignal(sig)
-            signal.signal(sig, self._handle)
-        return self
-
-    def _handle(self, signum, frame):
-        log.warning("signal %d: writing a checkpoint and stopping after this step", signum)
-        self.fitter.request_stop()
-
-    def __exit__(self, *exc):
-        for sig, h in self.old.items():
-            signal.signal(sig, h)
-        return False

@@ -41,6 +41,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
+from s3o_warp import interrupt
 from s3o_warp.errors import ConfigError, InputError
 from s3o_warp.ops import closest_point
 
@@ -253,8 +254,9 @@ class _Candidate:
 
 def _march(verts_t: torch.Tensor, faces_t: torch.Tensor, lo: np.ndarray, hi: np.ndarray, h: float,
            s: ResampleSettings, dilate: float = 0.0) -> _Surface | None:
-    """SDF on the grid of spacing h -> marching cubes at level dilate x h -> largest component (None: no surface)."""
-
+    """SDF on the grid of spacing h -> marching cubes at level dilate x h -> largest component (None: no surface).
+    A stop request (:mod:`s3o_warp.interrupt`) ends the resampling here, between grids."""
+    interrupt.check("the even resampling")
     axes = _grid_axes(lo, hi, h, s.margin_cells, s.symmetric_z)
     shape = tuple(len(a) for a in axes)
     if math.prod(shape) > s.max_grid_points:
@@ -538,6 +540,7 @@ def _isotropic(v: torch.Tensor, f: torch.Tensor, target: int, area: float, s: Re
     length = math.sqrt(_ISO_VERTS_PER_AREA * area / target)
     best: tuple[float, np.ndarray, np.ndarray, float] | None = None
     for trial in range(s.trials):
+        interrupt.check("the even resampling")
         ms = pymeshlab.MeshSet()
         ms.add_mesh(pymeshlab.Mesh(vertex_matrix=X, face_matrix=F))
         ms.meshing_isotropic_explicit_remeshing(

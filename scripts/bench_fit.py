@@ -1,22 +1,29 @@
 #!/usr/bin/env python
 """Fit benchmark: accuracy and wall time of whole fits, written to ``benchmarks/fit-<device>.json``.
 
-    python scripts/bench_fit.py --device cpu --cases quadruped [fox horse cows dog] [--methods s3o virtual]
-                                [--seeds 0 1 2] [--preset default] [--set key=value ...] [--out-dir DIR]
+    python scripts/bench_fit.py --device cpu --cases quadruped [fox horse robot lizard cows dog dance-twirl] [--methods s3o virtual]
+                                [--seeds 0 1 2] [--preset default] [--set key=value ...] [--out-dir DIR] [--profile]
 
 Cases: ``quadruped`` (the built-in default shot, the README's main command), ``fox`` (Khronos Fox Walk,
 48 frames, 320x240, 90-degree orbit), ``fox120`` (the same clip with a 120-degree orbit), ``horse`` (Quaternius Horse Walk, 48 frames, 320x240, 120-degree
-orbit), ``cows`` / ``dog`` (DAVIS with BADJA keypoints), ``cows-box`` / ``dog-box`` (the same on masks made from a
-box on frame 0, :data:`BOXED`). Cases that need ../shared/data skip with a
+orbit), ``robot`` (three.js's RobotExpressive biped, Walking, 48 frames, 320x240, 120-degree orbit), ``lizard``
+(the built-in lizard's crawl, 48 frames, 320x240, 120-degree orbit from 30 degrees up), ``cows`` / ``dog``
+(DAVIS with BADJA keypoints), ``dance-twirl`` (DAVIS, a dancer; no keypoints, so no PCK-T), ``cows-box`` /
+``dog-box`` (cows and dog on masks made from a box on frame 0, :data:`BOXED`). Cases that need ../shared/data skip with a
 message when it is absent. Each fit's metrics, per-phase wall time (from log.jsonl) and total time
 are recorded with the command, device, versions and git commit. Results are merged into the JSON file
 (one entry per case/method/seed/preset/overrides and commit; a rerun at the same commit replaces its
 entry, other commits' entries stay as history), so cases can be run in separate invocations, side by side too.
+
+``--profile`` writes ``benchmarks/profile-<device>.json`` instead: the same rows with, per phase of the fit, its
+wall time, steps and a step's split into Warp kernels, torch ops, host syncs and Python
+(:mod:`s3o_warp.run.profile`); each fit starts from an empty run directory, so the optical flow is computed.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import fcntl
 import json
 import logging
@@ -38,7 +45,9 @@ from s3o_warp.evaluation.report import evaluate_run
 from s3o_warp.fit import fit, resolve_device
 from s3o_warp.masks.make import make_masks
 from s3o_warp.provenance import REPO, cpu_name, git_commit, versions
+from s3o_warp.run.profile import FitProfile
 from s3o_warp.synth import make_sequence
+from s3o_warp.synth.sequence import PROCEDURAL
 
 DATA = Path(os.environ.get("S3O_SHARED_DATA", REPO.parent / "shared" / "data"))
 
@@ -47,8 +56,11 @@ SYNTH = {
     "fox": dict(source="gltf/khronos_Fox.glb", clip="Walk", frames=48, fps=30.0, size=(320, 240), azim=(-45.0, 45.0), elev=15.0),
     "fox120": dict(source="gltf/khronos_Fox.glb", clip="Walk", frames=48, fps=30.0, size=(320, 240), azim=(-60.0, 60.0), elev=15.0),
     "horse": dict(source="gltf/quaternius_Horse.glb", clip="Walk", frames=48, fps=30.0, size=(320, 240), azim=(-60.0, 60.0), elev=15.0),
+    "robot": dict(source="gltf/threejs_RobotExpressive.glb", clip="Walking", frames=48, fps=30.0, size=(320, 240),
+                  azim=(-60.0, 60.0), elev=15.0),
+    "lizard": dict(source="lizard", frames=48, fps=30.0, size=(320, 240), azim=(-60.0, 60.0), elev=30.0),
 }
-DAVIS = {"cows": "cows", "dog": "dog"}
+DAVIS = {"cows": "cows", "dog": "dog", "dance-twirl": "dance-twirl"}
 BOXED = {"cows-box": "cows", "dog-box": "dog"}
 """Cases fitted on masks made from one box (``s3o_warp.masks``, the default segmenter) instead of the true ones;
 their IoU and PCK-T are scored against the true masks (``iou_own_masks``: against the masks fitted)."""
@@ -70,7 +82,7 @@ def prepare_case(case: str, work: Path) -> Path | None:
     if case in SYNTH:
         spec = dict(SYNTH[case])
         src = spec.pop("source")
-        if src != "quadruped":
+        if src not in PROCEDURAL:
             src = DATA / src
             if not src.is_file() and not (seq / "images").is_dir():  # a sequence rendered earlier needs no source
                 print(f"bench_fit: skip {case}: {src} not found (set S3O_SHARED_DATA)", file=sys.stderr)
@@ -84,13 +96,13 @@ def prepare_case(case: str, work: Path) -> Path | None:
         if not img.is_dir():
             print(f"bench_fit: skip {case}: {img} not found", file=sys.stderr)
             return None
-        if not (seq / "keypoints.json").is_file():
-            seq.mkdir(parents=True, exist_ok=True)
-            for sub, src in (("images", img), ("masks", DATA / "davis" / "Annotations" / "480p" / name)):
-                if not (seq / sub).exists():
-                    os.symlink(src, seq / sub) if hasattr(os, "symlink") else shutil.copytree(src, seq / sub)
-            kp = badja_to_keypoints(DATA / "badja" / f"{name}.json", frame_size=(480, 854))
-            write_keypoints(kp, seq / "keypoints.json")
+        seq.mkdir(parents=True, exist_ok=True)
+        for sub, src in (("images", img), ("masks", DATA / "davis" / "Annotations" / "480p" / name)):
+            if not (seq / sub).exists():
+                os.symlink(src, seq / sub) if hasattr(os, "symlink") else shutil.copytree(src, seq / sub)
+        badja = DATA / "badja" / f"{name}.json"
+        if badja.is_file() and not (seq / "keypoints.json").is_file():  # a sequence without one has no PCK-T
+            write_keypoints(badja_to_keypoints(badja, frame_size=(480, 854)), seq / "keypoints.json")
         return seq
     if case in BOXED:
         truth = prepare_case(BOXED[case], work)
@@ -152,11 +164,14 @@ def main(argv=None) -> int:
                     help="with --t-o: name the repository's figure renders/skeleton_t_o-CASE-TAG-DEVICE.png, so a study "
                          "with other settings (e.g. --set skeleton.t_d=0.25 --figure-tag td25) does not "
                          "overwrite the sequence's figure")
+    ap.add_argument("--profile", action="store_true",
+                    help="write benchmarks/profile-<device>.json: per phase, wall time, steps and a step's split into "
+                         "kernels, torch ops, syncs and Python (no fit-<device>.json row: profiling slows the fit)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")  # the fit's log (M-step edits) to stderr
     device = resolve_device(args.device)
     work = Path(args.out_dir)
-    dest = REPO / "benchmarks" / f"fit-{device.type}.json"
+    dest = REPO / "benchmarks" / f"{'profile' if args.profile else 'fit'}-{device.type}.json"
     header = dict(
         command=" ".join(["python"] + sys.argv),
         device=str(device),
@@ -179,8 +194,12 @@ def main(argv=None) -> int:
                 parent = trunk.get(seed) if t_o is not None and not args.no_branch else None
                 if parent is None and args.branch_from:
                     parent = Path(args.branch_from.format(case=case, seed=seed))
+                if args.profile:  # from nothing: the optical flow is computed, not read from the cache
+                    run = run.with_name(run.name + "-profile")
+                    shutil.rmtree(run, ignore_errors=True)
                 t0 = time.perf_counter()
-                metrics = fit(seq, run, cfg, device, branch_from=parent)
+                with FitProfile(device) if args.profile else contextlib.nullcontext() as prof:
+                    metrics = fit(seq, run, cfg, device, branch_from=parent)
                 wall = time.perf_counter() - t0
                 if t_o is not None and parent is None and (run / "checkpoints" / "branch.pt").is_file():
                     trunk[seed] = run
@@ -196,11 +215,13 @@ def main(argv=None) -> int:
                     "pck_t": (metrics.get("pck_t") or {}).get("pck"),
                     "chamfer": (metrics.get("shape_3d") or {}).get("chamfer"),
                     "fscore": (metrics.get("shape_3d") or {}).get("fscore"),
+                    **views_figures(metrics),
                     "skeleton": {k: v for k, v in (metrics.get("skeleton") or {}).items() if k != "per_frame"},
                     "bones": len(json.loads((run / "skeleton.json").read_text())["bones"]),
                     "resamplings": resamplings(run),
                     "git_commit": header["git_commit"],  # the code this process loaded, not HEAD when the fit ends
                     "device_name": header["device_name"],
+                    **({"profile": prof.report()} if prof is not None else {}),
                 }
                 if case in BOXED:  # scored against the true masks (and their areas for PCK-T)
                     true = evaluate_run(run, prepare_case(BOXED[case], work), progress=False)
@@ -212,6 +233,17 @@ def main(argv=None) -> int:
             _compose(pictures, figure_path(case, device.type, args.figure_tag))
     print(f"wrote {dest}")
     return 0
+
+
+def views_figures(metrics: dict) -> dict:
+    """The figures from every side of a fit's metrics (synthetic cases): novel-view IoU per alignment and view,
+    F-score at 1 % and 2 % with each frame aligned, normal consistency and roughness (the truth's beside)."""
+    if "views" not in metrics:
+        return {}
+    v, s = metrics["views"], metrics["surface"]
+    return {"novel_iou": {k: {"mean": v[k]["mean"], **v[k]["per_view"]} for k in ("sequence", "framewise")},
+            "fscore_framewise": s["fscore"], "normal_consistency": s["normal_consistency"],
+            "roughness": {k: s["roughness"][k] for k in ("pred", "truth")}}
 
 
 def _same_run(a: dict, b: dict) -> bool:

@@ -38,6 +38,16 @@ def two_box_sequence(T=5):
     return np.array(verts, np.float32), faces, np.array(joints, np.float32), K
 
 
+def cam_from_world(T=5):
+    """(T, 4, 4) world -> camera transforms of :func:`two_box_sequence` (world: +y up, the boxes' y flipped)."""
+    flip = np.diag([1.0, -1.0, -1.0])  # a half turn about x: the object frame's y is down, the world's up
+    m = np.tile(np.eye(4), (T, 1, 1))
+    for t in range(T):
+        m[t, :3, :3] = rot("y", 0.12 * t) @ flip
+        m[t, :3, 3] = [-0.4 + 0.2 * t, -0.1, 4.0]
+    return m
+
+
 def _proj(K, X):
     p = K @ X
     return p[:2] / p[2]

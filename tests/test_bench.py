@@ -99,3 +99,19 @@ def test_git_commit_outside_a_checkout(tmp_path, monkeypatch):
     assert provenance.git_commit() == "c" * 40
     monkeypatch.setattr(provenance, "REPO", Path(__file__).resolve().parents[1])  # a checkout: the variable still wins
     assert provenance.git_commit() == "c" * 40
+
+
+def test_other_body_plans_are_cases():
+    assert {"robot", "lizard"} <= set(bench_fit.SYNTH) and "dance-twirl" in bench_fit.DAVIS
+    assert bench_fit.SYNTH["robot"]["clip"] == "Walking" and bench_fit.SYNTH["lizard"]["source"] == "lizard"
+
+
+def test_a_davis_case_without_keypoints_opens(shared_data, tmp_path, monkeypatch):
+    """dance-twirl has masks and no BADJA keypoints: the case opens as a sequence, with no keypoints.json."""
+    from s3o_warp.data.sequence import open_sequence
+
+    monkeypatch.setattr(bench_fit, "DATA", shared_data)
+    seq = bench_fit.prepare_case("dance-twirl", tmp_path)
+    assert not (seq / "keypoints.json").exists()
+    assert len(open_sequence(seq).frame_names) == 90
+    assert (bench_fit.prepare_case("dog", tmp_path) / "keypoints.json").is_file()  # BADJA's still converted

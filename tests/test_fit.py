@@ -140,6 +140,34 @@ def test_resume_after_interrupt_matches_uninterrupted(tiny_sequence, tmp_path, m
     _interrupt_resume_and_compare(tiny_sequence, a, b, cfg, monkeypatch, interrupting, "stopped at joint step")
 
 
+def test_a_stop_inside_the_resampling_resumes_with_its_m_step_run_again(tiny_sequence, tmp_path, monkeypatch):
+    """Ctrl-C while the mesh is resampled after an M-step: the checkpoint is the state before that M-step, which
+    the resumed fit runs again, and it ends where an uninterrupted fit ends."""
+    import s3o_warp.resample as R
+    from s3o_warp import interrupt
+
+    cfg = _cfg(**{"coarse.steps": 2, "motion.warmup_steps": 2, "motion.steps": 4, "skeleton.epochs": 2})
+    a, b = tmp_path / "a", tmp_path / "b"
+    fit(tiny_sequence, a, cfg, torch.device("cpu"))
+    orig = R._march
+
+    def stopping(*args, **kwargs):
+        interrupt.request()
+        return orig(*args, **kwargs)
+
+    monkeypatch.setattr(R, "_march", stopping)
+    with pytest.raises(FitInterrupted, match=r"stopped at joint step 2 \(stopped during the even resampling\)"):
+        fit(tiny_sequence, b, cfg, torch.device("cpu"))
+    monkeypatch.setattr(R, "_march", orig)
+    st = torch.load(latest_checkpoint(b), weights_only=False)
+    assert (st["phase"], st["step"], st["pending_m_step"]) == ("joint", 2, True)
+    fit(tiny_sequence, b, cfg, torch.device("cpu"), resume=True)
+    pa, pb = final_params(a), final_params(b)
+    assert pa.keys() == pb.keys()
+    for k in pa:
+        torch.testing.assert_close(pb[k], pa[k], rtol=0, atol=0, msg=f"resumed fit differs in {k}")
+
+
 def test_same_seed_repeats_bit_for_bit_on_threads(tiny_sequence, tmp_path):
     """Two fits of one seed give the same parameters (``repeatable``); torch's setting is the caller's after.
 

@@ -41,6 +41,7 @@ from s3o_warp.config import DataConfig
 from s3o_warp.data.crops import warp_similarity
 from s3o_warp.data.io import write_stream
 from s3o_warp.data.sequence import Sequence, check_data_config
+from s3o_warp import interrupt
 from s3o_warp.errors import ConfigError, InputError
 
 log = logging.getLogger(__name__)
@@ -268,7 +269,8 @@ def compute_flow(seq: Sequence, cache_dir: str | Path, cfg: DataConfig | None = 
     """Flow for every pair (t, t+1) of ``seq``, computed once and cached under ``cache_dir``.
 
     Pairs already in the cache (same content and settings) are not recomputed; missing ones are
-    computed one at a time (two decoded frames in memory) with a tqdm bar. ``cache_dir`` is only
+    computed one at a time (two decoded frames in memory) with a tqdm bar; a stop request
+    (:mod:`s3o_warp.interrupt`) ends it between pairs, the pairs done so far cached. ``cache_dir`` is only
     created when a pair has to be written.
 
     Args:
@@ -297,7 +299,8 @@ def compute_flow(seq: Sequence, cache_dir: str | Path, cfg: DataConfig | None = 
     files = [cache_dir / f"flow_{pair_key(seq, t, cfg)[:40]}.npy" for t in range(seq.num_frames - 1)]
     todo = [t for t, f in enumerate(files) if not (f.is_file() and _is_valid_file(f, S))]
     dis = make_dis(cfg.flow_preset, FLOW_FINEST_SCALE) if todo else None
-    for t in tqdm(todo, desc=f"{seq.name}: optical flow", unit="pair", leave=False, disable=None):
+    for k, t in enumerate(tqdm(todo, desc=f"{seq.name}: optical flow", unit="pair", leave=False, disable=None)):
+        interrupt.check(f"the optical flow ({len(files) - len(todo) + k} of {len(files)} pairs cached)")
         arr = pair_flow(seq.image(t), seq.image(t + 1), c2f[t], c2f[t + 1], S, FLOW_FB_SIGMA, dis)
         cache_dir.mkdir(parents=True, exist_ok=True)
         write_stream(files[t], lambda f: np.save(f, arr))

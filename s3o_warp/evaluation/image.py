@@ -19,6 +19,7 @@ import torch
 from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
+from s3o_warp import interrupt
 from s3o_warp.geometry import project_np
 from s3o_warp.ops import rasterize
 
@@ -52,6 +53,7 @@ def render_frames(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, image_siz
     bar = tqdm(total=T, desc="render", unit="frame", leave=False, disable=not progress)
     try:
         for s in range(0, T, max(1, int(chunk))):
+            interrupt.check("the evaluation's renders")
             e = min(T, s + max(1, int(chunk)))
             v_t = torch.as_tensor(np.ascontiguousarray(verts[s:e], dtype=np.float32), device=device)
             k_t = torch.as_tensor(np.ascontiguousarray(K[s:e], dtype=np.float32), device=device)

@@ -70,6 +70,8 @@ class GroundTruth:
         source: the file they were read from.
         tips: per end joint's name, float32 (T, 3): where its bone ends (the ``<joint>_tip`` keypoint's vertex,
             ``s3o_warp.synth``: a hoof's sole, a toe, an ear's tip); empty when the file has none.
+        cam_from_world: float64 (T, 4, 4) world -> camera transforms (world: the model's object frame, +y up),
+            or None; the views from every side (:mod:`~s3o_warp.evaluation.views`) need it.
     """
 
     verts: np.ndarray
@@ -82,6 +84,7 @@ class GroundTruth:
     image_size: tuple[int, int] | None
     source: Path
     tips: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    cam_from_world: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -261,8 +264,8 @@ def load_ground_truth(gt) -> GroundTruth:
     ``joints`` (T, J, 3) camera space, ``joint_parents`` (J,), ``joint_names`` (J,),
     ``joint_deforming`` or ``deforming`` (J,) bool (non-deforming joints are dropped when present),
     ``frame_names`` (T,), ``K`` (T, 3, 3) or (3, 3), ``image_size`` (2,), ``keypoint_names`` (K,) with
-    ``keypoint_vertex`` (K,) (each ``<joint>_tip`` of a joint kept becomes that joint's entry of ``tips``).
-    Unknown keys are ignored.
+    ``keypoint_vertex`` (K,) (each ``<joint>_tip`` of a joint kept becomes that joint's entry of ``tips``),
+    ``cam_from_world`` (T, 4, 4). Unknown keys are ignored.
     Without ``frame_names``, :func:`~s3o_warp.evaluation.report.evaluate_run` names the frames by the sorted mask
     stems of the sequence when their count matches (``s3o_warp.synth`` writes ``masks/000000.png`` ...), else by
     order.
@@ -318,7 +321,12 @@ def load_ground_truth(gt) -> GroundTruth:
                 if not 0 <= int(v) < verts.shape[1]:
                     raise InputError(f"{path}: keypoint {kn!r} names vertex {int(v)}, but there are {verts.shape[1]}")
                 tips[kn[:-4]] = verts[:, int(v)]
-    return GroundTruth(verts, faces.astype(np.int32), joints, names or [], parents, fnames, K, size, path, tips)
+    c2w = None
+    if "cam_from_world" in d:
+        c2w = np.asarray(d["cam_from_world"], dtype=np.float64)
+        if c2w.shape != (T, 4, 4):
+            raise InputError(f"{path}: 'cam_from_world' must have shape ({T}, 4, 4), got {c2w.shape}")
+    return GroundTruth(verts, faces.astype(np.int32), joints, names or [], parents, fnames, K, size, path, tips, c2w)
 
 
 def load_keypoints(path) -> Keypoints:

@@ -1,6 +1,6 @@
 """A whole run scored against its sequence: :func:`evaluate_run` ties the readers
 (:mod:`s3o_warp.evaluation.loaders`) and the scores (:mod:`~s3o_warp.evaluation.image`,
-:mod:`~s3o_warp.evaluation.shape`, :mod:`~s3o_warp.evaluation.skeleton`) together, whatever inputs are there;
+:mod:`~s3o_warp.evaluation.shape`, :mod:`~s3o_warp.evaluation.views`, :mod:`~s3o_warp.evaluation.skeleton`) together, whatever inputs are there;
 :func:`write_metrics` writes its result as ``metrics.json`` and :func:`format_table` prints it
 (``scripts/evaluate.py`` is the command line).
 """
@@ -31,6 +31,7 @@ from s3o_warp.evaluation.loaders import (
     load_predictions,
 )
 from s3o_warp.evaluation.shape import bbox_diagonal, frame_similarities, shape_metrics
+from s3o_warp.evaluation.views import novel_view_iou, surface_quality
 from s3o_warp.evaluation.skeleton import (
     empty_bones,
     joints_inside,
@@ -113,7 +114,9 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
         A JSON-ready dict: ``run``, ``sequence``, ``frames``, then ``mask_iou`` (``mean``,
         ``per_frame`` {stem: IoU}), ``pck_t`` (``pck`` %, ``correct``, ``total``, ``pairs``,
         ``frames``, ``alpha``, ``threshold_frame``, ``per_keypoint``), ``shape_3d`` (see
-        :func:`shape_metrics`), ``skeleton`` (see :func:`skeleton_distance`), ``limb_identity`` (see
+        :func:`shape_metrics`), ``views`` (``sequence`` and ``framewise``: :func:`novel_view_iou` with the
+        sequence's alignment and with each frame's own), ``surface`` (:func:`surface_quality`, each frame
+        aligned on its own), ``skeleton`` (see :func:`skeleton_distance`), ``limb_identity`` (see
         :func:`limb_identity`), each present only when its inputs are, and ``skipped`` {metric: reason}
         for the others.
 
@@ -207,6 +210,16 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
                                    fscore_ratio=fscore_ratio, icp_iters=icp_iters, seed=seed)
         shape["frames"] = int(len(pi))
         result["shape_3d"] = shape
+        # each frame aligned on its own: the shape and articulation apart from the path (root pose, depth, scale)
+        sims = frame_similarities(pred.verts_cam[pi], pred.faces, gt.verts[gi], gt.faces, sim, seed=seed)
+        if gt.cam_from_world is not None:
+            c2w = gt.cam_from_world[gi]
+            result["views"] = {
+                "sequence": novel_view_iou(pred.verts_cam[pi], pred.faces, gt.verts[gi], gt.faces, c2w, [sim] * len(pi)),
+                "framewise": novel_view_iou(pred.verts_cam[pi], pred.faces, gt.verts[gi], gt.faces, c2w, sims)}
+        else:
+            skipped["views"] = f"{gt.source} has no cam_from_world (the model's up axis)"
+        result["surface"] = surface_quality(pred.verts_cam[pi], pred.faces, gt.verts[gi], gt.faces, sims, seed=seed)
         if gt.joints is None:
             skipped["skeleton"] = f"{gt.source} has no joints"
         elif pred.joints_cam is None:
@@ -224,7 +237,6 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
                     pred.joints_cam[pi], gt.joints[gi], gt.joint_parents, diag, sim, gt.joint_names, branch=False,
                     min_separation=chain_separation, tips=tips)
                 if framewise_limbs:  # the same count on the rig alone: each frame aligned on its own
-                    sims = frame_similarities(pred.verts_cam[pi], pred.faces, gt.verts[gi], gt.faces, sim, seed=seed)
                     aligned = np.stack([f(j) for f, j in zip(sims, pred.joints_cam[pi])])
                     result["skeleton"]["limbs_framewise"] = {
                         **limb_coverage(aligned, gt.joints[gi], gt.joint_parents, diag, None, gt.joint_names,
@@ -275,6 +287,19 @@ def format_table(metrics: dict) -> str:
                      f"mean over {m['frames']} frames, scale {m['alignment']['scale']:.4g}"))
         rows.append((f"F-score@{100 * m['fscore_ratio']:g}%", f(m["fscore"], ".4f"),
                      f"precision {f(m['precision'], '.3f')}, recall {f(m['recall'], '.3f')}"))
+    if "views" in metrics:
+        for k, what in (("sequence", "the sequence's alignment"), ("framewise", "each frame aligned alone")):
+            m = metrics["views"][k]
+            rows.append((f"novel-view IoU ({k})", f(m["mean"], ".4f"),
+                         ", ".join(f"{v} {x:.3f}" for v, x in m["per_view"].items()) + f"; {what}"))
+    if "surface" in metrics:
+        m = metrics["surface"]
+        rows.append(("F-score (each frame)", " / ".join(f"{x:.3f}" for x in m["fscore"].values()),
+                     "at " + " / ".join(m["fscore"]) + " of the diagonal, each frame aligned alone"))
+        rows.append(("normal consistency", f(m["normal_consistency"], ".4f"), "mean |n . n'| to the nearest point, both ways"))
+        r = m["roughness"]
+        rows.append(("roughness", f(r["pred"], ".4f"),
+                     f"edges sharper than {r['angle_deg']:g} degrees; the truth {r['truth']:.4f}"))
     if "skeleton" in metrics:
         m = metrics["skeleton"]
         rows.append(("joint dist / bbox diag", f(m["distance"], ".5f"),

@@ -30,17 +30,23 @@ def sample_surface(verts: np.ndarray, faces: np.ndarray, n: int, seed=0) -> np.n
     Returns:
         float64 (n, 3) points (the vertices themselves when every face is degenerate).
     """
+    return sample_surface_faces(verts, faces, n, seed)[0]
+
+
+def sample_surface_faces(verts: np.ndarray, faces: np.ndarray, n: int, seed=0) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`sample_surface`'s points (the same ones for the same seed) and the index of each one's face
+    (int64 (n,); 0 when every face is degenerate)."""
     v = np.asarray(verts, dtype=np.float64)
     tri = v[np.asarray(faces, dtype=np.int64)]
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=-1)
     rng = np.random.default_rng(seed)
     if not np.isfinite(area).all() or area.sum() <= 0:
-        return v[rng.integers(0, v.shape[0], n)]
+        return v[rng.integers(0, v.shape[0], n)], np.zeros(n, np.int64)
     cdf = np.cumsum(area)
     f = np.minimum(np.searchsorted(cdf, rng.random(n) * cdf[-1], side="right"), len(area) - 1)
     r1, r2 = np.sqrt(rng.random(n)), rng.random(n)
     w = np.stack([1.0 - r1, r1 * (1.0 - r2), r1 * r2], axis=1)
-    return np.einsum("nk,nkc->nc", w, tri[f])
+    return np.einsum("nk,nkc->nc", w, tri[f]), f.astype(np.int64)
 
 
 def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:

@@ -12,8 +12,9 @@ import argparse
 import logging
 import sys
 
+from s3o_warp import interrupt
 from s3o_warp.errors import InputError
-from s3o_warp.masks.make import SEGMENTERS, interrupt_on_sigterm, make_masks, parse_box, parse_box_at
+from s3o_warp.masks.make import SEGMENTERS, make_masks, parse_box, parse_box_at
 
 
 def add_box_arguments(p: argparse.ArgumentParser) -> None:
@@ -56,13 +57,13 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(message)s")
     try:
-        with interrupt_on_sigterm():
+        with interrupt.on_signals():  # Ctrl-C, SIGTERM: the masks stop at the next frame, nothing is written
             make_masks(args.input, args.out, boxes_from(args), args.segmenter, args.checkpoint)
     except InputError as e:
         print(f"s3o-masks: error: {e}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("s3o-masks: interrupted; nothing was written", file=sys.stderr)
+    except (interrupt.Interrupted, KeyboardInterrupt) as e:
+        print(f"s3o-masks: {e or 'interrupted'}; nothing was written", file=sys.stderr)
         return 130
     return 0
 

@@ -9,11 +9,9 @@ that exists is replaced only when ``s3o-masks`` made it).
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import re
 import shutil
-import signal
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -21,6 +19,7 @@ import cv2
 import numpy as np
 from tqdm.auto import tqdm
 
+from s3o_warp import interrupt
 from s3o_warp.data.io import atomic_dir, imwrite, read_json, write_json, write_video
 from s3o_warp.data.sequence import Frames, open_frames
 from s3o_warp.errors import InputError
@@ -37,6 +36,8 @@ MIN_BOX_SIDE = 8
 
 FORMAT_VERSION = 1
 """Of ``masks.json``: a folder made by another version is made again by ``s3o-fit --box``."""
+
+_STOPPED = "the masks"
 
 _NUMBER = r"-?\d+(?:\.\d+)?"
 _BOX = re.compile(rf"^\s*({_NUMBER})\s*,\s*({_NUMBER})\s*,\s*({_NUMBER})\s*,\s*({_NUMBER})\s*$")
@@ -124,6 +125,7 @@ def _write_frames(frames: Frames, folder: Path) -> list[Path]:
     folder.mkdir()
     files = []
     for k in tqdm(range(len(frames)), desc=f"{frames.name}: frames", unit="frame", leave=False, disable=None):
+        interrupt.check(_STOPPED)
         if frames.files is not None:
             files.append(Path(shutil.copyfile(frames.files[k], folder / frames.files[k].name)))
         else:
@@ -149,20 +151,6 @@ def preview_frame(image: np.ndarray, mask: np.ndarray, k: int, box: Box | None =
     scale = max(0.4, image.shape[0] / 720)
     cv2.putText(out, str(k), (8, int(28 * scale)), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), max(1, int(2 * scale)))
     return out
-
-
-@contextlib.contextmanager
-def interrupt_on_sigterm() -> Iterator[None]:
-    """SIGTERM raises KeyboardInterrupt inside the block (as Ctrl-C does), so the half-made folder is removed."""
-
-    def handle(signum, frame):
-        raise KeyboardInterrupt
-
-    old = signal.signal(signal.SIGTERM, handle)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, old)
 
 
 def _segment(segmenter: str, files: list[Path], boxes: dict[int, Box], checkpoint: Path | None,
@@ -194,6 +182,8 @@ def make_masks(source, out, boxes: dict[int, Box], segmenter: str = "grabcut", c
     Raises:
         InputError: a bad input (see the module docstring), checked before any work; or an object lost while its
             mask is carried (the frame, and a second box to add there). Nothing is written then.
+        s3o_warp.interrupt.Interrupted: a stop was requested (Ctrl-C, SIGTERM inside ``interrupt.on_signals``);
+            checked once a frame, nothing is written.
     """
     source, out = Path(source).expanduser(), Path(out).expanduser()
     checkpoint = Path(checkpoint).expanduser() if checkpoint is not None else None
@@ -219,6 +209,7 @@ def make_masks(source, out, boxes: dict[int, Box], segmenter: str = "grabcut", c
             bar = tqdm(total=len(names), desc=f"{frames.name}: masks ({segmenter})", unit="frame", disable=None)
             try:
                 for k, m in _segment(segmenter, files, boxes, checkpoint, flow_preset):
+                    interrupt.check(_STOPPED)
                     imwrite(tmp / "masks" / f"{names[k]}.png", m.astype(np.uint8) * 255)
                     areas[k] = int(m.sum())
                     touches[k] = bool(m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any())
@@ -231,7 +222,7 @@ def make_masks(source, out, boxes: dict[int, Box], segmenter: str = "grabcut", c
             finally:
                 bar.close()
             write_video(
-                (preview_frame(_read_rgb(files[k]), cv2.imread(str(tmp / "masks" / f"{n}.png"), 0) > 127, k, boxes.get(k))
+                (interrupt.check(_STOPPED) or preview_frame(_read_rgb(files[k]), cv2.imread(str(tmp / "masks" / f"{n}.png"), 0) > 127, k, boxes.get(k))
                  for k, n in enumerate(tqdm(names, desc=f"{frames.name}: preview", unit="frame", leave=False, disable=None))),
                 tmp / "masks_preview.mp4", fps)
             write_json(tmp / "masks.json", {

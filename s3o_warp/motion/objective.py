@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from s3o_warp import interrupt
 from s3o_warp.config import MotionConfig
 from s3o_warp.data.store import FitData
 from s3o_warp.geometry import project
@@ -122,13 +123,15 @@ def total(terms: dict) -> torch.Tensor:
 @torch.no_grad()
 def mean_terms(terms_of, num_frames: int, batch_frames: int, device) -> dict[str, float]:
     """Every weighted term of ``terms_of(frames)`` averaged over windows that cover every frame (no step taken);
-    consecutive windows share a frame, so every frame pair is seen."""
+    consecutive windows share a frame, so every frame pair is seen. A stop request (:mod:`s3o_warp.interrupt`)
+    ends it between windows (it changes nothing: the caller can score again)."""
     n = min(batch_frames, num_frames)
     starts = list(range(0, num_frames - n + 1, max(n - 1, 1)))
     if starts[-1] != num_frames - n:
         starts.append(num_frames - n)
     acc: dict[str, list[float]] = {}
     for s in starts:
+        interrupt.check("the scoring of a camera hypothesis")
         terms, _, _ = terms_of(torch.arange(s, s + n, device=device))
         for k, (w, v) in terms.items():
             acc.setdefault(k, []).append(float(w * v))

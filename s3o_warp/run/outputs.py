@@ -88,7 +88,7 @@ def write_run(fitter) -> dict:
         log.warning("export skipped: %s", e)
     d = fitter.data
     metrics = evaluate_run(run, None, masks=d.mask_dir, keypoints=d.keypoints_file, ground_truth=d.ground_truth_dir,
-                           object_id=fitter.cfg.data.object_id, progress=False)
+                           object_id=fitter.cfg.data.object_id)
     metrics["sequence"] = str(d.sequence_dir)
     metrics["seconds"] = round(fitter.history[-1]["seconds"], 2) if fitter.history else None
     write_json(run / "metrics.json", metrics)

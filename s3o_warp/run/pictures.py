@@ -11,7 +11,9 @@ import numpy as np
 import torch
 import trimesh
 from matplotlib.figure import Figure
+from tqdm import tqdm
 
+from s3o_warp import interrupt
 from s3o_warp.config import DataConfig
 from s3o_warp.data.io import atomic_path, write_image, write_video
 from s3o_warp.data.sequence import open_sequence
@@ -19,6 +21,21 @@ from s3o_warp.geometry import project_np
 from s3o_warp.ops import interpolate, rasterize
 
 log = logging.getLogger(__name__)
+
+TURNTABLE_FRAMES = 36
+"""Frames of the turntable video (one turn)."""
+
+
+_STOPPED = "the renders (the fit is done; --resume writes them)"
+
+
+def _each(items, bar: tqdm | None):
+    """``items`` one by one, each counted on ``bar``, stopping at a stop request (:mod:`s3o_warp.interrupt`)."""
+    for x in items:
+        interrupt.check(_STOPPED)
+        yield x
+        if bar is not None:
+            bar.update(1)
 
 
 def render_fit_frames(rig, chunk: int = 8):
@@ -36,10 +53,10 @@ def render_fit_frames(rig, chunk: int = 8):
             yield fi[k].numpy(), col[k].numpy()
 
 
-def overlay_video(run: Path, rig, sequence, fps: float) -> Path:
+def overlay_video(run: Path, rig, sequence, fps: float, bar: tqdm | None = None) -> Path:
     """Side by side input | input with the fitted mesh (rendered colours, outlined) at the input rate."""
     out = []
-    for k, (fi, col) in enumerate(render_fit_frames(rig)):
+    for k, (fi, col) in enumerate(_each(render_fit_frames(rig), bar)):
         img = sequence.image(k)
         fg = fi >= 0
         over = img.astype(np.float32).copy()
@@ -80,11 +97,15 @@ def draw_skeleton(img: np.ndarray, rig, frame: int) -> np.ndarray:
     return img
 
 
-def skeleton_overlay(run: Path, rig, sequence, fps: float = 24.0) -> list[Path]:
+def _has_skeleton(rig) -> bool:
+    return rig.joints is not None and rig.joint_pairs is not None and len(rig.joints) > 0
+
+
+def skeleton_overlay(run: Path, rig, sequence, fps: float = 24.0, bar: tqdm | None = None) -> list[Path]:
     """The skeleton over every input frame (``skeleton.mp4``, GIF fallback) and over frame 0 (``skeleton.png``)."""
-    if rig.joints is None or rig.joint_pairs is None or len(rig.joints) == 0:
+    if not _has_skeleton(rig):
         return []
-    frames = [draw_skeleton(sequence.image(k), rig, k) for k in range(rig.num_frames)]
+    frames = [draw_skeleton(sequence.image(k), rig, k) for k in _each(range(rig.num_frames), bar)]
     path = write_image(run / "renders" / "skeleton.png", frames[0])
     return [path, write_video(frames, run / "renders" / "skeleton.mp4", fps)]
 
@@ -117,12 +138,15 @@ def loss_plot(run: Path, history: list[dict]) -> Path | None:
 
 
 def write_renders(run: Path, rig, data, history, data_cfg=None) -> list[Path]:
-    """All pictures of a run; returns their paths."""
+    """All pictures of a run, with a progress bar over their frames; returns their paths."""
     (Path(run) / "renders").mkdir(parents=True, exist_ok=True)
     seq = open_sequence(data.sequence_dir, cfg=data_cfg or DataConfig(), **(data.open_kwargs or {}))
-    paths = [overlay_video(Path(run), rig, seq, data.fps), loss_plot(Path(run), history)]
-    paths += skeleton_overlay(Path(run), rig, seq, data.fps)
-    paths += canonical_views(Path(run), rig, fps=data.fps)
+    T = rig.num_frames
+    total = T * (1 + _has_skeleton(rig)) + TURNTABLE_FRAMES + 4  # + side, top, front, bones
+    with tqdm(total=total, desc="renders", unit="frame", dynamic_ncols=True, leave=False) as bar:
+        paths = [overlay_video(Path(run), rig, seq, data.fps, bar), loss_plot(Path(run), history)]
+        paths += skeleton_overlay(Path(run), rig, seq, data.fps, bar)
+        paths += canonical_views(Path(run), rig, fps=data.fps, bar=bar)
     paths = [p for p in paths if p is not None]
     for p in paths:
         log.info("render: %s", p)
@@ -186,23 +210,39 @@ def render_canonical(rig, view: np.ndarray, size: int = 256, draw_skeleton: bool
     return out
 
 
-def canonical_views(run: Path, rig, fps: float = 24.0, turntable_frames: int = 36) -> list[Path]:
-    """Side and top views of the canonical mesh with its skeleton (PNG) and a turntable (mp4/GIF)."""
+def canonical_views(run: Path, rig, fps: float = 24.0, turntable_frames: int = TURNTABLE_FRAMES,
+                    bar: tqdm | None = None) -> list[Path]:
+    """Side, top and front views of the canonical mesh with its skeleton (PNG; ``canonical_views.png`` puts the
+    three over the same views in plain grey, shaded, where the shape's width and surface show), and a turntable
+    (mp4/GIF) of the coloured mesh beside the plain one."""
     v = rig.verts.astype(np.float64)
     centre = 0.5 * (v.min(0) + v.max(0))
     dist = 3.0 * np.linalg.norm(v.max(0) - v.min(0))
-    # object frame: the canonical camera's axes (y down, z away from the canonical camera)
+    # object frame: the canonical camera's axes (x along the image's rows, y down, z away from the canonical camera)
     down = np.array([0.0, 1.0, 0.0])
+    across = np.array([0.0, 0.0, 1.0])
     paths = []
-    for name, direction, up in (("side", np.array([0.0, 0.0, 1.0]), -down), ("top", down, np.array([0.0, 0.0, 1.0]))):
-        img = render_canonical(rig, _look_from(direction, centre, dist, up))
-        paths.append(write_image(run / "renders" / f"canonical_{name}.png", img))
+    grey = np.full((v.shape[0], 3), 0.8, np.float32)
+    coloured, plain = [], []
+    for name, direction, up in _each((("side", across, -down), ("top", down, across),
+                                      ("front", np.array([-1.0, 0.0, 0.0]), -down)), bar):
+        view = _look_from(direction, centre, dist, up)
+        coloured.append(render_canonical(rig, view))
+        plain.append(render_canonical(rig, view, draw_skeleton=False, colors=grey))
+        paths.append(write_image(run / "renders" / f"canonical_{name}.png", coloured[-1]))
+    # one picture to judge the shape at a glance: side, top and front, coloured with the skeleton over plain grey
+    paths.append(write_image(run / "renders" / "canonical_views.png",
+                             np.concatenate([np.concatenate(coloured, 1), np.concatenate(plain, 1)], 0)))
     frames = []
-    for k in range(turntable_frames):
+    for k in _each(range(turntable_frames), bar):
         a = 2 * np.pi * k / turntable_frames
-        direction = np.array([np.sin(a), 0.35, np.cos(a)])
-        frames.append(render_canonical(rig, _look_from(direction, centre, dist, -down)))
+        view = _look_from(np.array([np.sin(a), 0.35, np.cos(a)]), centre, dist, -down)
+        frames.append(np.concatenate([render_canonical(rig, view),
+                                      render_canonical(rig, view, draw_skeleton=False, colors=grey)], 1))
     paths.append(write_video(frames, run / "renders" / "turntable.mp4", fps))
-    img = render_canonical(rig, _look_from(np.array([0.0, 0.0, 1.0]), centre, dist, -down), colors=bone_colors(rig.weights))
+    interrupt.check(_STOPPED)
+    img = render_canonical(rig, _look_from(across, centre, dist, -down), colors=bone_colors(rig.weights))
+    if bar is not None:
+        bar.update(1)
     paths.append(write_image(run / "renders" / "bones.png", img))
     return paths

@@ -2,15 +2,19 @@
 
 What is read (pygltflib): the default scene's node hierarchy (TRS or matrix per node), every mesh
 node's triangle primitives merged into one mesh (indices, POSITION, optional COLOR_0, TEXCOORD_0),
-the skin (joints, inverse bind matrices, JOINTS_0/WEIGHTS_0 with weights renormalised), the
-materials' base colour (baseColorFactor times the base-colour texture sampled at each vertex's UV,
-times COLOR_0, returned in sRGB) and the animation channels (translation, rotation, scale; LINEAR,
-STEP and CUBICSPLINE samplers; morph-target weights are ignored).
+every skin the meshes use (joints, inverse bind matrices, JOINTS_0/WEIGHTS_0 with weights
+renormalised; the joints of all skins form one skeleton), the materials' base colour
+(baseColorFactor times the base-colour texture sampled at each vertex's UV, times COLOR_0, returned
+in sRGB) and the animation channels (translation, rotation, scale; LINEAR, STEP and CUBICSPLINE
+samplers; morph-target weights are ignored: the meshes keep their base shape).
 
 Skinning follows the spec: ``v' = sum_i w_i * G(joint_i) * IBM_i * v`` with G the joint's global
-transform (its ancestors' transforms included, animated channels over the nodes' rest TRS) and the
-skinned mesh node's own transform ignored. Rest pose (``rest_verts``) = the same formula with every
-node at its rest TRS, which may differ from the bind pose (the raw POSITION data).
+transform (its ancestors' transforms included, animated channels over the nodes' rest TRS), IBM the
+inverse bind matrices of the mesh's own skin and the skinned mesh node's own transform ignored. A mesh
+without a skin moves rigidly with its node's global transform (a part parented to a bone, as in
+three.js's RobotExpressive); its vertices get weight 1 on the nearest joint at or above that node.
+Rest pose (``rest_verts``) = the same formulas with every node at its rest TRS, which may differ from
+the bind pose (the raw POSITION data).
 
 The result is turned into this project's object frame (+y up, +x forward) by a rotation of +90
 degrees about +y (glTF assets face +z); units stay the file's (metres per the spec). Joints are
@@ -351,31 +355,27 @@ def load_gltf(path: str | Path, clip: str | None = None, fps: float = 30.0, fram
     mesh_nodes = [i for i in order if gltf.nodes[i].mesh is not None]
     if not mesh_nodes:
         raise InputError(f"{path}: the scene has no mesh; export the model with its mesh")
-    skins = {gltf.nodes[i].skin for i in mesh_nodes if gltf.nodes[i].skin is not None}
-    if len(skins) > 1:
-        raise InputError(f"{path}: meshes use {len(skins)} different skins; only one skin per file is supported")
-    skin = gltf.skins[skins.pop()] if skins else None
-    # Joints in hierarchy order (parents first); non-skin models get one joint per mesh node.
-    skin_nodes = list(skin.joints) if skin is not None else mesh_nodes
+    skin_ids = sorted({gltf.nodes[i].skin for i in mesh_nodes if gltf.nodes[i].skin is not None})
+    # Joints: every skin's, in hierarchy order (parents first); non-skin models get one joint per mesh node.
+    skin_nodes = list(dict.fromkeys(n for s in skin_ids for n in gltf.skins[s].joints)) if skin_ids else mesh_nodes
     pos_in_order = {n: k for k, n in enumerate(order)}
     joint_nodes = sorted(skin_nodes, key=lambda n: pos_in_order.get(n, len(order)))
-    col_of_skin = np.array([joint_nodes.index(n) for n in skin_nodes])
-    if skin is not None and skin.inverseBindMatrices is not None:
-        ibm_skin = reader.accessor(skin.inverseBindMatrices).reshape(-1, 4, 4).transpose(0, 2, 1)
-    else:
-        ibm_skin = np.tile(np.eye(4), (len(skin_nodes), 1, 1))
-    ibm = np.empty_like(ibm_skin)
-    ibm[col_of_skin] = ibm_skin
     nj = len(joint_nodes)
-    joint_set = set(joint_nodes)
+    col_of_node = {n: k for k, n in enumerate(joint_nodes)}
+    # per skin: its joint index -> column, and the inverse bind matrix of each column (identity where unused)
+    col_of_skin = {s: np.array([col_of_node[n] for n in gltf.skins[s].joints]) for s in skin_ids}
+    ibm = np.tile(np.eye(4), (max(len(skin_ids), 1), nj, 1, 1))
+    for k, s in enumerate(skin_ids):
+        if gltf.skins[s].inverseBindMatrices is not None:
+            ibm[k, col_of_skin[s]] = reader.accessor(gltf.skins[s].inverseBindMatrices).reshape(-1, 4, 4).transpose(0, 2, 1)
     parents = np.full(nj, -1, dtype=np.int32)
     for k, n in enumerate(joint_nodes):
         p = parent[n]
-        while p >= 0 and p not in joint_set:
+        while p >= 0 and p not in col_of_node:
             p = parent[p]
-        parents[k] = joint_nodes.index(p) if p >= 0 else -1
+        parents[k] = col_of_node[p] if p >= 0 else -1
 
-    pos_parts, face_parts, w_parts, col_parts, rigid_parts = [], [], [], [], []
+    pos_parts, face_parts, w_parts, col_parts, rigid_parts, skin_parts = [], [], [], [], [], []
     offset = 0
     for node_index in mesh_nodes:
         node = gltf.nodes[node_index]
@@ -394,12 +394,19 @@ def load_gltf(path: str | Path, clip: str | None = None, fps: float = 30.0, fram
             if node.skin is not None and attrs.JOINTS_0 is not None and attrs.WEIGHTS_0 is not None:
                 jj = reader.accessor(attrs.JOINTS_0, as_float=False).astype(np.int64)
                 ww = reader.accessor(attrs.WEIGHTS_0)
-                np.add.at(w, (np.repeat(np.arange(nv), 4), col_of_skin[jj.reshape(-1)]), ww.reshape(-1))
+                np.add.at(w, (np.repeat(np.arange(nv), 4), col_of_skin[node.skin][jj.reshape(-1)]), ww.reshape(-1))
                 s = w.sum(1, keepdims=True)
                 w = np.where(s > 0, w / np.where(s > 0, s, 1.0), 0.0)
                 rigid_parts.append(np.full(nv, -1))
-            else:
+                skin_parts.append(np.full(nv, skin_ids.index(node.skin)))
+            else:  # moves with its node; weight 1 on the nearest joint at or above it (none: a static part)
+                holder = node_index
+                while holder >= 0 and holder not in col_of_node:
+                    holder = parent[holder]
+                if holder >= 0:
+                    w[:, col_of_node[holder]] = 1.0
                 rigid_parts.append(np.full(nv, node_index))
+                skin_parts.append(np.full(nv, -1))
             pos_parts.append(p)
             face_parts.append(idx + offset)
             w_parts.append(w)
@@ -411,12 +418,16 @@ def load_gltf(path: str | Path, clip: str | None = None, fps: float = 30.0, fram
     faces = np.concatenate(face_parts)
     weights = np.concatenate(w_parts)
     rigid = np.concatenate(rigid_parts)
+    skin_of = np.concatenate(skin_parts)
     colors = _linear_to_srgb(np.concatenate(col_parts))
 
     def skin_verts(g: np.ndarray) -> np.ndarray:  # g: (T, nodes, 4, 4) -> (T, V, 3)
-        mats = g[:, joint_nodes] @ ibm  # (T, J, 4, 4)
-        blend = np.einsum("vj,tjab->tvab", weights, mats[:, :, :3, :], optimize=True)
-        out = np.einsum("tvab,vb->tva", blend[..., :3], bind) + blend[..., 3]
+        out = np.zeros((g.shape[0], bind.shape[0], 3))
+        for k in range(len(skin_ids)):  # each skin with its own inverse bind matrices
+            sel = skin_of == k
+            mats = g[:, joint_nodes] @ ibm[k]  # (T, J, 4, 4)
+            blend = np.einsum("vj,tjab->tvab", weights[sel], mats[:, :, :3, :], optimize=True)
+            out[:, sel] = np.einsum("tvab,vb->tva", blend[..., :3], bind[sel]) + blend[..., 3]
         for node_index in np.unique(rigid[rigid >= 0]):
             sel = rigid == node_index
             m = g[:, node_index]
@@ -430,7 +441,7 @@ def load_gltf(path: str | Path, clip: str | None = None, fps: float = 30.0, fram
     if to_object_frame:
         r = GLTF_TO_OBJECT[:3, :3]
         verts, rest_verts, joints, rest_joints = (x @ r.T for x in (verts, rest_verts, joints, rest_joints))
-    deforming = weights.max(0) > 0 if skin is not None else np.ones(nj, dtype=bool)
+    deforming = weights.max(0) > 0 if skin_ids else np.ones(nj, dtype=bool)
     jnames = [gltf.nodes[n].name or f"node{n}" for n in joint_nodes]
     log.info("%s: %d vertices, %d faces, %d joints (%d deforming), clip %r, %d frames",
              path.name, bind.shape[0], faces.shape[0], nj, int(deforming.sum()),
@@ -477,8 +488,8 @@ def _primitive_colours(reader: _Reader, prim, nv: int) -> np.ndarray:
     return col
 
 
-_TIP = re.compile(r"foot|hand|paw|hoof|toe|ear|tail|head|nose|jaw|lowerleg|leg02|leg2|forearm", re.I)
-_KNEE = re.compile(r"knee|lowerleg|forearm|leg02|leg2|shin|calf|hock", re.I)
+_TIP = re.compile(r"foot|hand|paw|hoof|toe|ear|tail|head|nose|jaw|lowerleg|leg02|leg2|forearm|middle", re.I)
+_KNEE = re.compile(r"knee|lowerleg|forearm|lowerarm|leg02|leg2|shin|calf|hock", re.I)
 _UPPER = re.compile(r"upperleg|upperarm|leg01|leg1$|thigh|shoulder|hip", re.I)
 
 
@@ -488,12 +499,12 @@ def gltf_keypoints(mesh: AnimatedMesh, max_points: int = 20) -> tuple[list[str],
     Rules, in priority order (later rules fill up to ``max_points``; repeated vertices dropped):
     1. ``<joint>_tip`` for end joints of the deforming tree (no deforming descendant): if the name
        suggests an extremity (foot, hand, paw, hoof, toe, ear, tail, head, nose, jaw, lower leg,
-       forearm), the vertex whose strongest weight is that joint farthest from the joint (a toe,
-       an ear's or the tail's tip); for other names, when that joint's skin reaches the ground
+       forearm, a middle finger), the vertex whose strongest weight is that joint farthest from
+       the joint (a toe, an ear's or the tail's tip, a fingertip); for other names, when that joint's skin reaches the ground
        (within 5 % of the height, +y up), its lowest vertex (a hoof's sole: the Quaternius IK
        foot bones). Ground-reaching ends come first;
-    2. knees (knee, lower leg, forearm, leg02, shin, calf, hock): the rest surface vertex nearest
-       to the joint;
+    2. knees and elbows (knee, lower leg, forearm, lower arm, leg02, shin, calf, hock): the rest
+       surface vertex nearest to the joint;
     3. the head joint, the first neck and tail joints, then upper legs / shoulders / hips.
 
     Returns:

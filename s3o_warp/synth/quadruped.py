@@ -251,12 +251,7 @@ def build_quadruped(frames: int = 48, fps: float = 24.0, seed: int = 0, target_v
     Raises:
         InputError: for a non-positive frame count, fps or vertex target.
     """
-    if frames < 1:
-        raise InputError(f"synthetic quadruped: frames must be >= 1, got {frames}; pass --frames N with N >= 1")
-    if fps <= 0:
-        raise InputError(f"synthetic quadruped: fps must be > 0, got {fps}; pass --fps F with F > 0")
-    if target_vertices < 200:
-        raise InputError(f"synthetic quadruped: target_vertices must be >= 200, got {target_vertices}")
+    check_build("quadruped", frames, fps, target_vertices)
     rng = np.random.default_rng(seed)
     scale = 1.0 + rng.uniform(-0.05, 0.05, size=4)  # body length, girth, neck, legs
     period = 1.0 * (1.0 + rng.uniform(-0.1, 0.1))
@@ -276,34 +271,54 @@ def build_quadruped(frames: int = 48, fps: float = 24.0, seed: int = 0, target_v
     leg_len = float(np.linalg.norm(pos["shoulder_fl"] - pos["knee_fl"]) + np.linalg.norm(pos["knee_fl"] - pos["foot_fl"]))
     stride = 2.0 * leg_len * math.sin(math.radians(24.0))
     rot, root_shift, _ = walk_cycle(frames, fps, period, phase, in_place, stride)
+    return posed_model("quadruped", "walk", seed, JOINT_NAMES, parents, rest_joints, verts, faces, weights, rot,
+                       root_shift, fps, _coat_colours(verts, rest_joints, rng))
+
+
+def check_build(what: str, frames: int, fps: float, target_vertices: int) -> None:
+    """Refuse a procedural model's impossible settings (``what``: its name) with one line naming the fix."""
+    if frames < 1:
+        raise InputError(f"synthetic {what}: frames must be >= 1, got {frames}; pass --frames N with N >= 1")
+    if fps <= 0:
+        raise InputError(f"synthetic {what}: fps must be > 0, got {fps}; pass --fps F with F > 0")
+    if target_vertices < 200:
+        raise InputError(f"synthetic {what}: target_vertices must be >= 200, got {target_vertices}")
+
+
+def posed_model(what: str, clip: str, seed: int, joint_names: list[str], parents: np.ndarray, rest_joints: np.ndarray,
+                verts: np.ndarray, faces: np.ndarray, weights: np.ndarray, rot: np.ndarray, root_shift: np.ndarray,
+                fps: float, colors: np.ndarray) -> AnimatedMesh:
+    """A procedural model posed by its motion: forward kinematics of the local rotations ``rot`` (T, J, 3, 3) and
+    ``root_shift`` (T, 3) (:func:`forward_kinematics`), linear blend skinning of the rest skin ``verts`` (V, 3)."""
     g = forward_kinematics(rest_joints, parents, rot, root_shift)  # (T, J, 4, 4)
     blend = np.einsum("vj,tjab->tvab", weights, g[:, :, :3, :], optimize=True)  # (T, V, 3, 4)
     posed = np.einsum("tvab,vb->tva", blend[..., :3], verts) + blend[..., 3]
     joints = np.einsum("tjab,jb->tja", g[:, :, :3, :3], rest_joints) + g[:, :, :3, 3]
-
     return AnimatedMesh(
         rest_verts=verts.astype(np.float32),
         faces=faces.astype(np.int32),
         verts=posed.astype(np.float32),
-        joint_names=list(JOINT_NAMES),
+        joint_names=list(joint_names),
         parents=parents,
         joints=joints.astype(np.float32),
-        deforming=np.ones(len(JOINT_NAMES), dtype=bool),
+        deforming=np.ones(len(joint_names), dtype=bool),
         weights=weights,
         rest_joints=rest_joints.astype(np.float32),
         fps=float(fps),
-        clip_names=["walk"],
-        clip="walk",
-        colors=_coat_colours(verts, rest_joints, rng),
-        source=f"procedural quadruped (seed {seed})",
+        clip_names=[clip],
+        clip=clip,
+        colors=colors,
+        source=f"procedural {what} (seed {seed})",
     )
 
 
-def _mesh_from_sdf(prims, target_vertices: int) -> tuple[np.ndarray, np.ndarray]:
-    """Marching cubes of the smooth union, the largest component, Taubin-smoothed, ~target vertices."""
-    lo = np.array([-0.85, -0.05, -0.25])
-    hi = np.array([0.85, 1.15, 0.25])
-    area = 1.9  # m^2, the skin's area near the default proportions; sets the voxel size
+def _mesh_from_sdf(prims, target_vertices: int, lo=(-0.85, -0.05, -0.25), hi=(0.85, 1.15, 0.25),
+                   area: float = 1.9) -> tuple[np.ndarray, np.ndarray]:
+    """Marching cubes of the smooth union, the largest component, Taubin-smoothed, ~target vertices.
+
+    ``lo``, ``hi``: the grid's corners (metres, the body inside them); ``area``: the skin's area near the
+    default proportions (m^2), which sets the first voxel size."""
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
     h = math.sqrt(area / (1.9 * target_vertices))
     for _ in range(3):
         shape = np.ceil((hi - lo) / h).astype(int) + 1
@@ -321,7 +336,7 @@ def _mesh_from_sdf(prims, target_vertices: int) -> tuple[np.ndarray, np.ndarray]
         mesh = max(parts, key=lambda m: len(m.vertices))
     trimesh.smoothing.filter_taubin(mesh, lamb=0.5, nu=-0.53, iterations=6)
     mesh.fix_normals()
-    log.debug("quadruped skin: %d vertices, %d faces (voxel %.4f m)", len(mesh.vertices), len(mesh.faces), h)
+    log.debug("procedural skin: %d vertices, %d faces (voxel %.4f m)", len(mesh.vertices), len(mesh.faces), h)
     return np.asarray(mesh.vertices), np.asarray(mesh.faces)
 
 
@@ -342,9 +357,12 @@ def keypoint_vertices(mesh: AnimatedMesh) -> tuple[list[str], np.ndarray]:
     (e.g. feet: the sole; knees, shoulders and hips: the outer side). Returns (names (K,), vertex
     indices int64 (K,)), K = 19.
     """
-    rest_joints = mesh.rest_joints
-    idx = []
-    for _, joint, off in _KEYPOINTS:
-        target = rest_joints[JOINT_NAMES.index(joint)] + np.asarray(off)
-        idx.append(int(np.argmin(np.linalg.norm(mesh.rest_verts - target, axis=1))))
-    return list(KEYPOINT_NAMES), np.asarray(idx, dtype=np.int64)
+    return list(KEYPOINT_NAMES), nearest_surface_vertices(mesh, JOINT_NAMES, _KEYPOINTS)
+
+
+def nearest_surface_vertices(mesh: AnimatedMesh, joint_names: list[str], keypoints) -> np.ndarray:
+    """Per keypoint ``(name, joint, offset)``, the rest vertex nearest to the joint's rest position plus the
+    offset (metres): int64 (K,)."""
+    idx = [int(np.argmin(np.linalg.norm(mesh.rest_verts - (mesh.rest_joints[joint_names.index(j)] + np.asarray(off)),
+                                        axis=1))) for _, j, off in keypoints]
+    return np.asarray(idx, dtype=np.int64)

@@ -1,4 +1,5 @@
-"""Write a synthetic sequence (input contract plus ground truth) from the quadruped or a glTF model.
+"""Write a synthetic sequence (input contract plus ground truth) from a procedural model (the quadruped, the
+lizard) or a glTF model.
 
 Folder layout (``out_dir``)::
 
@@ -40,16 +41,21 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from .. import interrupt
 from ..data.io import atomic_dir, imwrite
 from ..errors import InputError
 from ..geometry import project_np
 from .camera import camera_path
 from .gltf import gltf_keypoints, load_gltf
 from .model import AnimatedMesh
+from .lizard import build_lizard, lizard_keypoints
 from .quadruped import build_quadruped, keypoint_vertices
 from .render import SolidTexture, shade_chunk
 
 log = logging.getLogger(__name__)
+
+PROCEDURAL = {"quadruped": (build_quadruped, keypoint_vertices, "walk"), "lizard": (build_lizard, lizard_keypoints, "crawl")}
+"""The built-in models by source name: (builder, keypoints, the one clip)."""
 
 
 @dataclass
@@ -82,13 +88,14 @@ def load_source(source: str | os.PathLike, frames: int, fps: float, seed: int, c
                 ) -> tuple[AnimatedMesh, list[str], np.ndarray]:
     """The animated model and its keypoints (names, rest vertex indices) for ``source``.
 
-    ``source`` is "quadruped" (the procedural model) or a path to a ``.glb``/``.gltf`` file.
+    ``source`` is "quadruped" or "lizard" (the procedural models) or a path to a ``.glb``/``.gltf`` file.
     """
-    if str(source) == "quadruped":
-        if clip not in (None, "walk"):
-            raise InputError(f"synthetic quadruped: it has only the clip 'walk', got --clip {clip!r}")
-        mesh = build_quadruped(frames=frames, fps=fps, seed=seed)
-        names, idx = keypoint_vertices(mesh)
+    if str(source) in PROCEDURAL:
+        build, keypoints, only = PROCEDURAL[str(source)]
+        if clip not in (None, only):
+            raise InputError(f"synthetic {source}: it has only the clip {only!r}, got --clip {clip!r}")
+        mesh = build(frames=frames, fps=fps, seed=seed)
+        names, idx = keypoints(mesh)
     else:
         mesh = load_gltf(source, clip=clip, fps=fps, frames=frames)
         names, idx = gltf_keypoints(mesh)
@@ -151,7 +158,7 @@ def make_sequence(out_dir: str | os.PathLike, source: str | os.PathLike = "quadr
 
     Args:
         out_dir: the sequence folder to create.
-        source: "quadruped" (built in, no download) or a ``.glb``/``.gltf`` path.
+        source: "quadruped" or "lizard" (built in, no download) or a ``.glb``/``.gltf`` path.
         clip: glTF animation name (None = the first).
         frames, fps, size (W, H), azim (A0, A1) degrees, elev degrees, path: the shot (see :class:`Shot`).
         seed: fixes the quadruped, its texture and the background.
@@ -195,6 +202,7 @@ def make_sequence(out_dir: str | os.PathLike, source: str | os.PathLike = "quadr
         kp_frames: dict[str, list] = {}
         bar = tqdm(total=num_t, desc="render", unit="frame", disable=not progress)
         for t0 in range(0, num_t, shot.chunk):
+            interrupt.check(f"the rendering of {out} (nothing written)")
             t1 = min(num_t, t0 + shot.chunk)
             image, mask, face_index, depth = shade_chunk(
                 verts_cam[t0:t1], mesh.faces, k, cam_from_world[t0:t1], mesh.rest_verts, colors, texture,

@@ -163,3 +163,27 @@ def test_compute_flow_cache_hit(tmp_path, monkeypatch):
     # a damaged cache file is recomputed, not trusted
     fc.files[0].write_bytes(b"junk")
     assert compute_flow(seq2, cache).computed == 1
+
+
+def test_a_stop_request_ends_the_flow_between_pairs_and_keeps_the_pairs_done(tmp_path, monkeypatch):
+    from s3o_warp import interrupt
+
+    root = write_seq(tmp_path / "s", n=4)
+    seq = open_sequence(root, cfg=DataConfig(crop_size=32, flow_preset="fast"))
+    cache = tmp_path / "cache"
+    orig, calls = flow_mod.pair_flow, []
+
+    def stop_after_first(*args, **kwargs):
+        calls.append(1)
+        interrupt.request()  # as Ctrl-C does while this pair is computed
+        return orig(*args, **kwargs)
+
+    monkeypatch.setattr(flow_mod, "pair_flow", stop_after_first)
+    with interrupt.on_signals():
+        with pytest.raises(interrupt.Interrupted, match=r"optical flow \(1 of 3 pairs cached\)"):
+            compute_flow(seq, cache)
+    assert len(calls) == 1 and len(list(cache.glob("flow_*.npy"))) == 1
+    monkeypatch.setattr(flow_mod, "pair_flow", orig)
+    with interrupt.on_signals():  # a new run: the request is forgotten, the pair done is not computed again
+        fc = compute_flow(seq, cache)
+    assert (fc.computed, fc.hits) == (2, 1)

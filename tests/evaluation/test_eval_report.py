@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from eval_scene import H, W, naive_pckt, tiny_motion, two_box_sequence
+from eval_scene import H, W, cam_from_world, naive_pckt, tiny_motion, two_box_sequence
 from s3o_warp.kernels.raster import rasterize
 
 from s3o_warp.data.keypoints import write_keypoints
@@ -69,7 +69,7 @@ def scene(tmp_path_factory):
     (seq / "ground_truth").mkdir()
     np.savez(seq / "ground_truth" / "gt.npz", verts=verts, faces=faces, K=K, image_size=np.array([H, W]),
              joints=joints, joint_parents=np.array([-1, 0, 1]), joint_names=np.array(["body", "hip", "foot"]),
-             frame_names=np.array(names))
+             frame_names=np.array(names), cam_from_world=cam_from_world(T))
     runs = {}
     for name, v, j in (("self", verts, joints), ("frozen", np.repeat(verts[:1], T, 0), np.repeat(joints[:1], T, 0))):
         run = root / name
@@ -94,6 +94,11 @@ def test_ground_truth_scored_against_itself_is_perfect(scene):
     assert m["skeleton"]["limbs_framewise"]["covered"] == 1 and re.search(r"each frame aligned alone +1/1", format_table(m))
     assert [(o["limb"], o["bone"], o["kept"]) for o in m["limb_identity"]["limbs"]] == [("foot", 1, 1.0)]
     assert m["bones"] == {"count": 2, "empty": []} and re.search(r"bones owning no vertex +0/2", format_table(m))
+    for k in ("sequence", "framewise"):
+        assert m["views"][k]["mean"] == 1.0 and sorted(m["views"][k]["per_view"]) == ["front", "side", "top"]
+    assert m["surface"]["fscore"] == {"1%": 1.0, "2%": 1.0} and m["surface"]["normal_consistency"] > 0.999
+    assert m["surface"]["roughness"]["pred"] == m["surface"]["roughness"]["truth"]
+    assert re.search(r"novel-view IoU \(framewise\) +1\.0000", format_table(m))
     assert m["skipped"] == {}
     json.dumps(m)  # JSON-ready
 
@@ -140,6 +145,8 @@ def test_frozen_prediction_scores_clearly_lower(scene):
     assert m["pck_t"]["pck"] < 50.0
     assert m["shape_3d"]["chamfer"] > 0.02 and m["shape_3d"]["fscore"] < 0.8
     assert m["skeleton"]["distance"] > 0.02
+    assert m["views"]["sequence"]["mean"] < 0.6 and m["views"]["framewise"]["mean"] < 0.97
+    assert m["views"]["sequence"]["mean"] < m["views"]["framewise"]["mean"]
     assert "weights" in m["skipped"]["limb_identity"]  # this run's motion.npz has none
 
 
@@ -162,6 +169,8 @@ def test_scores_a_synth_sequence(tmp_path):
     assert good["shape_3d"]["chamfer"] < 1e-6 and good["shape_3d"]["fscore"] == 1.0 and good["skeleton"]["distance"] < 1e-5
     assert bad["mask_iou"]["mean"] < 0.9 and bad["shape_3d"]["fscore"] < 0.9 and bad["skeleton"]["distance"] > 0.01
     assert bad["pck_t"]["pck"] < good["pck_t"]["pck"]
+    assert good["views"]["sequence"]["mean"] == good["views"]["framewise"]["mean"] == 1.0
+    assert bad["views"]["sequence"]["mean"] < 0.9
 
 
 def test_pck_of_a_run_matches_naive_loops(scene):

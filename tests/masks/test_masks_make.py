@@ -4,6 +4,8 @@ nothing written, interruption, and a fit from a box."""
 from __future__ import annotations
 
 import json
+import os
+import signal
 
 import cv2
 import numpy as np
@@ -102,16 +104,19 @@ def test_a_lost_object_names_its_frame_and_the_box_to_add(tmp_path, capsys):
     assert not (tmp_path / "seq").exists() and sorted(p.name for p in tmp_path.iterdir()) == ["clip.avi"]
 
 
-def test_an_interrupt_leaves_nothing_behind(clip, tmp_path, monkeypatch):
+def test_a_stop_request_leaves_nothing_behind(clip, tmp_path, monkeypatch, capsys):
     images, truth = clip
 
     def stop_after_one(read, n, boxes, flow_preset):
         yield 0, truth[0]
-        raise KeyboardInterrupt
+        os.kill(os.getpid(), signal.SIGTERM)  # as a user's kill would: the flag, then the next frame's check
+        yield 1, truth[1]
+        raise AssertionError("the masks went on after the stop")
 
     monkeypatch.setattr(make, "segment_video", stop_after_one)
     frames = write_frames(tmp_path / "frames", images)
     assert masks_main([str(frames), "--box", "20,20,80,70", "--out", str(tmp_path / "seq")]) == 130
+    assert "nothing was written" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["frames"]  # no folder, no temporary
 
 

@@ -95,3 +95,68 @@ def test_known_turn_rate_skips_the_scoring(tiny_sequence, tmp_path):
     fit(tiny_sequence, run, cfg, torch.device("cpu"))
     rec = next(json.loads(l) for l in (run / "log.jsonl").read_text().splitlines() if '"hypotheses"' in l)
     assert rec["rates_deg_per_frame"] == [1.5] and rec["chosen"] == 1.5
+
+
+def test_a_signal_during_the_hypotheses_stops_within_2_s_and_resume_ends_where_an_uninterrupted_fit_ends(
+        tiny_sequence, tmp_path, monkeypatch):
+    """SIGINT once the search has begun (seen through its progress bar and its scoring): the fit stops with a
+    checkpoint holding the search, in the first round's steps, then (resumed) in a rate's scoring, then in the
+    second round. Resumed each time, the fit chooses the same turn and ends with the same parameters as an
+    uninterrupted fit of the same seed."""
+    import os
+    import signal
+    import time
+
+    import s3o_warp.motion.hypotheses as H
+    from conftest import final_params
+
+    from s3o_warp.fit import FitInterrupted
+
+    monkeypatch.setattr(H, "HYPOTHESIS_REFINE", 2)
+    monkeypatch.setattr(H, "HYPOTHESIS_REFINE_STEPS", 3)
+    cfg = _cfg(**{"coarse.steps": 2, "motion.warmup_steps": 2, "motion.steps": 2,
+                  "motion.hypotheses": 3, "motion.hypothesis_steps": 3})
+    a, b = tmp_path / "a", tmp_path / "b"
+    fit(tiny_sequence, a, cfg, torch.device("cpu"))
+
+    sent = []  # when each SIGINT was sent
+
+    def send():
+        sent.append(time.perf_counter())
+        os.kill(os.getpid(), signal.SIGINT)
+
+    class Hooked(H.tqdm):  # steps of the search: 3 rates x 3 steps, then 2 finalists x 3 steps
+        def update(self, n=1):
+            super().update(n)
+            if self.n in (5, 11) and len(sent) == (0 if self.n == 5 else 2):
+                send()
+
+    orig, scored = Fitter.mean_terms, []
+
+    def scoring(self):
+        scored.append(1)
+        if len(scored) == 2:  # the second rate's score, in the first resumed fit
+            send()
+        return orig(self)
+
+    monkeypatch.setattr(H, "tqdm", Hooked)
+    monkeypatch.setattr(Fitter, "mean_terms", scoring)
+    stops = (("turn rate 2 of 3, step 2", 2), ("turn rate 2 of 3, step 3", 3), ("finalist 1 of 2, step 2", 2))
+    for k, (where, done) in enumerate(stops):
+        with pytest.raises(FitInterrupted, match=f"camera hypotheses \\({where}\\)"):
+            fit(tiny_sequence, b, cfg, torch.device("cpu"), resume=k > 0)
+        assert time.perf_counter() - sent[k] < 2.0
+        st = torch.load(latest_checkpoint(b), weights_only=False)
+        assert (st["phase"], st["step"], st["hypotheses"]["steps_done"]) == ("warmup", 0, done)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handlers are back
+    fit(tiny_sequence, b, cfg, torch.device("cpu"), resume=True)
+
+    def chosen(run):
+        rec = [json.loads(l) for l in (run / "log.jsonl").read_text().splitlines() if '"hypotheses"' in l]
+        return [{k: r[k] for k in ("scores", "refined", "chosen")} for r in rec]
+
+    assert chosen(b) == chosen(a) and len(chosen(a)) == 1
+    pa, pb = final_params(a), final_params(b)
+    assert pa.keys() == pb.keys()
+    for k in pa:
+        torch.testing.assert_close(pb[k], pa[k], rtol=0, atol=0, msg=f"resumed fit differs in {k}")

@@ -105,7 +105,9 @@ def _parse(path: str) -> pygltflib.GLTF2:
 
 
 def _spec_skin(path: Path, clip: str | None, times: np.ndarray | None):
-    """v' = sum_i w_i * J_i * IBM_i * v, J the joints' global matrices (rest TRS where not animated)."""
+    """v' = sum_i w_i * J_i * IBM_i * v for a skinned mesh (J the joints' global matrices, rest TRS where not
+    animated, IBM its own skin's); v' = M * v for a mesh without a skin (M its node's global matrix). Every
+    mesh node of the scene, merged in depth-first order."""
     g = _parse(str(path))
     blob = g.binary_blob()
 
@@ -123,6 +125,8 @@ def _spec_skin(path: Path, clip: str | None, times: np.ndarray | None):
     if clip is not None:
         an = [a for a in g.animations if a.name == clip][0]
         for ch in an.channels:
+            if ch.target.path not in ("translation", "rotation", "scale"):
+                continue  # morph-target weights: the loader keeps the base shape
             s = an.samplers[ch.sampler]
             key_t, key_v = acc(s.input)[:, 0].astype(np.float64), acc(s.output).astype(np.float64)
             tq = np.clip(times + key_t.min(), key_t.min(), key_t.max())
@@ -149,20 +153,29 @@ def _spec_skin(path: Path, clip: str | None, times: np.ndarray | None):
     def world(n, k):
         return local(n, k) if n not in parent else world(parent[n], k) @ local(n, k)
 
-    skin = g.skins[0]
-    ibm = acc(skin.inverseBindMatrices).reshape(-1, 4, 4).transpose(0, 2, 1).astype(np.float64)
-    node = [n for n in g.nodes if n.skin is not None][0]
+    def depth_first(n):
+        return [n] + [m for c in (g.nodes[n].children or []) for m in depth_first(c)]
+
+    mesh_nodes = [n for r in g.scenes[g.scene or 0].nodes for n in depth_first(r) if g.nodes[n].mesh is not None]
     out = []
     for k in range(1 if times is None else len(times)):
-        jm = np.stack([world(j, k) @ ibm[i] for i, j in enumerate(skin.joints)])
         verts = []
-        for prim in g.meshes[node.mesh].primitives:
-            v = acc(prim.attributes.POSITION).astype(np.float64)
-            jj = acc(prim.attributes.JOINTS_0).astype(np.int64)
-            ww = acc(prim.attributes.WEIGHTS_0).astype(np.float64)
-            ww = ww / ww.sum(1, keepdims=True)
-            vh = np.concatenate([v, np.ones((len(v), 1))], 1)
-            verts.append(np.einsum("vk,vkab,vb->va", ww, jm[jj], vh)[:, :3])
+        for n in mesh_nodes:
+            node = g.nodes[n]
+            if node.skin is not None:
+                skin = g.skins[node.skin]
+                ibm = acc(skin.inverseBindMatrices).reshape(-1, 4, 4).transpose(0, 2, 1).astype(np.float64)
+                jm = np.stack([world(j, k) @ ibm[i] for i, j in enumerate(skin.joints)])
+            for prim in g.meshes[node.mesh].primitives:
+                v = acc(prim.attributes.POSITION).astype(np.float64)
+                vh = np.concatenate([v, np.ones((len(v), 1))], 1)
+                if node.skin is None:
+                    verts.append((vh @ world(n, k).T)[:, :3])
+                    continue
+                jj = acc(prim.attributes.JOINTS_0).astype(np.int64)
+                ww = acc(prim.attributes.WEIGHTS_0).astype(np.float64)
+                ww = ww / ww.sum(1, keepdims=True)
+                verts.append(np.einsum("vk,vkab,vb->va", ww, jm[jj], vh)[:, :3])
         out.append(np.concatenate(verts))
     return np.stack(out)
 
@@ -226,6 +239,36 @@ def test_every_model_loads(shared_data):
         assert m.rest_joints[head, 0] > m.rest_joints[tail, 0], f.name
         if f.name.startswith("quaternius"):
             assert 0 < (~m.deforming).sum() <= 6, f.name  # IK/pole helpers marked
+
+
+def test_gltf_robot_merges_meshes_and_skins(shared_data):
+    """three.js's RobotExpressive: 14 meshes (12 moved rigidly by a bone, the two hands each by its own skin)
+    merged into one posed mesh that matches the spec formula, every vertex weighted on a joint of its side."""
+    path = shared_data / "gltf" / "threejs_RobotExpressive.glb"
+    g = _parse(str(path))
+    mesh_nodes = [n for n in g.nodes if n.mesh is not None]
+    counts = [sum(g.accessors[p.attributes.POSITION].count for p in g.meshes[n.mesh].primitives) for n in mesh_nodes]
+    assert len(mesh_nodes) == 14 and len({n.skin for n in mesh_nodes if n.skin is not None}) == 2
+    fps, frames = 30.0, 3
+    mesh = load_gltf(path, clip="Walking", fps=fps, frames=frames, to_object_frame=False)
+    assert mesh.rest_verts.shape[0] == sum(counts) == 7214
+    ref = _spec_skin(path, "Walking", np.arange(frames) / fps)
+    scale = np.ptp(ref[0], axis=0).max()
+    assert np.abs(mesh.verts - ref).max() < 1e-5 * scale
+    assert np.abs(mesh.rest_verts - _spec_skin(path, None, None)[0]).max() < 1e-5 * scale
+    assert np.abs(mesh.verts[2] - mesh.verts[0]).max() > 1e-2 * scale  # the clip animates
+    np.testing.assert_allclose(mesh.weights.sum(1), 1.0, atol=1e-5)  # every part moves with a joint
+    names = mesh.joint_names
+    owner = [names[j] for j in mesh.weights.argmax(1)]
+    start = np.cumsum([0] + counts)
+    for k, node in enumerate(mesh_nodes):  # each hand on its own side's arm and fingers
+        side = {"Hand.L": ".L", "Hand.R": ".R"}.get(node.name)
+        if side:
+            assert all(o.endswith(side) for o in owner[start[k]:start[k + 1]]), node.name
+    assert not dict(zip(names, mesh.deforming))["PoleTarget.L"] and dict(zip(names, mesh.deforming))["Head"]
+    kp, idx = gltf_keypoints(mesh)
+    assert {"Head_tip", "Foot.L_tip", "Foot.R_tip", "LowerArm.L", "LowerArm.R", "Middle2.L_tip",
+            "Middle2.R_tip", "LowerLeg.L", "LowerLeg.R"} <= set(kp) and idx.max() < 7214
 
 
 def test_gltf_errors(shared_data, tmp_path):

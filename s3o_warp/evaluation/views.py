@@ -1,0 +1,174 @@
+"""The result from every side: silhouettes from views the video never shows, and the quality of the surface.
+
+* :func:`novel_view_iou`: the prediction (aligned to the ground truth by the sequence's similarity, or by each
+  frame's own) and the ground truth, both projected orthographically along the ground truth's body axes (from
+  above, from the front and from the side) on a few frames, and the IoU of the two silhouettes per view.
+  Orthographic silhouettes from opposite directions are mirror images of each other, so "from below" scores as
+  "from above", "from the back" as "from the front" and the left side as the right: three views are all there is.
+* :func:`surface_quality`: F-score at 1 % and 2 % of the diagonal, normal consistency (mean ``|n_p . n_g|`` of
+  each sample's normal against its nearest neighbour's on the other surface, both directions) and roughness
+  (:func:`roughness`: the share of edges whose dihedral angle is sharper than 60 degrees; a smooth surface
+  scores near zero, a crumpled one does not).
+
+The body axes come from the ground truth's world (``cam_from_world``: the model's object frame, +y up): up is
+world +y, forward is the principal horizontal direction of the posed vertices over the clip.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+from .shape import Similarity, bbox_diagonal, chamfer_fscore, sample_surface_faces
+
+VIEWS = ("top", "front", "side")
+ROUGH_ANGLE_DEG = 60.0
+
+
+def body_axes(gt_verts_cam: np.ndarray, cam_from_world: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-frame orthographic projections (2 x 3, camera space) along the body's axes.
+
+    Args:
+        gt_verts_cam: float (T, V, 3) ground-truth vertices, camera space of each frame.
+        cam_from_world: float (T, 4, 4) world -> camera transforms of those frames (world +y up).
+
+    Returns:
+        ``{view: (T, 2, 3)}`` rows = the image axes of each view, expressed in each frame's camera space.
+    """
+    R = np.asarray(cam_from_world, np.float64)[:, :3, :3]
+    t = np.asarray(cam_from_world, np.float64)[:, :3, 3]
+    world = np.einsum("tba,tvb->tva", R, np.asarray(gt_verts_cam, np.float64) - t[:, None])  # R^T (x - t)
+    horiz = (world - world.mean(1, keepdims=True))[..., [0, 2]].reshape(-1, 2)
+    _, _, vt = np.linalg.svd(horiz - horiz.mean(0), full_matrices=False)
+    up = np.array([0.0, 1.0, 0.0])
+    fwd = np.array([vt[0, 0], 0.0, vt[0, 1]])
+    side = np.cross(fwd, up)
+    axes_world = {"top": np.stack([fwd, side]), "front": np.stack([side, up]), "side": np.stack([fwd, up])}
+    # a world direction d is R d in camera space: rows (2, 3) @ R^T
+    return {k: np.einsum("ab,tcb->tac", a, R) for k, a in axes_world.items()}
+
+
+def silhouette(points2d: np.ndarray, faces: np.ndarray, origin: np.ndarray, pixel: float, size: int) -> np.ndarray:
+    """Filled silhouette of a triangle mesh's 2D projection on a ``size`` x ``size`` grid (uint8 0/1).
+
+    Pixel (c, r) covers ``origin + (c, r) * pixel``; triangles are filled with 1/16-pixel precision.
+    """
+    shift = 4
+    p = np.round((points2d - origin) / pixel * (1 << shift)).astype(np.int32)
+    tri = p[np.asarray(faces, np.int64)]
+    img = np.zeros((size, size), np.uint8)
+    for tr in tri:
+        cv2.fillConvexPoly(img, tr, 1, cv2.LINE_8, shift)
+    return img
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    union = np.logical_or(a, b).sum()
+    return float(np.logical_and(a, b).sum() / union) if union else 1.0
+
+
+def novel_view_iou(pred_verts: np.ndarray, pred_faces: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray,
+                   cam_from_world: np.ndarray, sims: list[Similarity], frames: np.ndarray | None = None,
+                   size: int = 160, num_frames: int = 8) -> dict:
+    """Silhouette IoU of the aligned prediction and the ground truth from above, the front and the side.
+
+    Args:
+        pred_verts: float (T, N, 3) predicted camera-space vertices.
+        pred_faces: int (F, 3).
+        gt_verts: float (T, V, 3) ground-truth camera-space vertices of the same frames.
+        gt_faces: int (G, 3).
+        cam_from_world: float (T, 4, 4) the ground truth's world -> camera transforms.
+        sims: T similarities mapping each frame's prediction onto the ground truth (the sequence's one repeated,
+            or :func:`~s3o_warp.evaluation.shape.frame_similarities`).
+        frames: indices to score (default ``num_frames`` evenly spaced over the clip).
+        size: pixels of each square picture; both silhouettes share its frame (their joint extent plus 5 %).
+        num_frames: frames scored when ``frames`` is None.
+
+    Returns:
+        ``{"mean", "per_view": {view: mean IoU}, "frames": [indices], "per_frame": {view: [IoU per frame]}}``.
+    """
+    T = gt_verts.shape[0]
+    if frames is None:
+        frames = np.unique(np.linspace(0, T - 1, min(num_frames, T)).round().astype(int))
+    axes = body_axes(gt_verts, cam_from_world)
+    per_frame: dict[str, list[float]] = {v: [] for v in VIEWS}
+    for t in frames:
+        p = sims[t](pred_verts[t])
+        g = np.asarray(gt_verts[t], np.float64)
+        for view in VIEWS:
+            a = axes[view][t]
+            p2, g2 = p @ a.T, g @ a.T
+            both = np.concatenate([p2, g2])
+            lo, hi = both.min(0), both.max(0)
+            extent = float((hi - lo).max()) * 1.05
+            pixel = extent / (size - 1)
+            origin = 0.5 * (lo + hi) - 0.5 * extent
+            per_frame[view].append(_iou(silhouette(p2, pred_faces, origin, pixel, size),
+                                        silhouette(g2, gt_faces, origin, pixel, size)))
+    per_view = {v: float(np.mean(per_frame[v])) for v in VIEWS}
+    return {"mean": float(np.mean(list(per_view.values()))), "per_view": per_view,
+            "frames": [int(t) for t in frames], "per_frame": per_frame}
+
+
+def roughness(verts: np.ndarray, faces: np.ndarray, angle_deg: float = ROUGH_ANGLE_DEG) -> float:
+    """Share of a mesh's interior edges whose dihedral angle (between the two faces' normals) exceeds ``angle_deg``.
+
+    Vertices at the same position are merged first, so a model split along its UV seams counts its seams.
+    """
+    m = trimesh.Trimesh(np.asarray(verts, np.float64), np.asarray(faces, np.int64), process=True)
+    angles = m.face_adjacency_angles
+    return float((angles > math.radians(angle_deg)).mean()) if len(angles) else 0.0
+
+
+def _normal_consistency(p: np.ndarray, pn: np.ndarray, g: np.ndarray, gn: np.ndarray) -> float:
+    _, i = cKDTree(g).query(p)
+    _, j = cKDTree(p).query(g)
+    return float(0.5 * (np.abs((pn * gn[i]).sum(-1)).mean() + np.abs((gn * pn[j]).sum(-1)).mean()))
+
+
+def _face_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    tri = v[f]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-30)
+
+
+def surface_quality(pred_verts: np.ndarray, pred_faces: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray,
+                    sims: list[Similarity], frames: np.ndarray | None = None, n_points: int = 5000,
+                    ratios: tuple[float, ...] = (0.01, 0.02), num_frames: int = 8, seed: int = 0) -> dict:
+    """F-scores, normal consistency and roughness of the aligned prediction against the ground truth.
+
+    Args:
+        pred_verts, pred_faces, gt_verts, gt_faces: as in :func:`novel_view_iou`.
+        sims: T similarities (prediction -> ground truth) per frame.
+        frames: indices to score (default ``num_frames`` evenly spaced).
+        n_points: surface samples per frame and mesh.
+        ratios: F-score thresholds as fractions of the ground truth's bbox diagonal.
+        seed: sampling seed.
+
+    Returns:
+        ``{"fscore": {"1%": ..., "2%": ...}, "normal_consistency", "roughness": {"pred", "truth"}, "frames"}``.
+    """
+    T = gt_verts.shape[0]
+    if frames is None:
+        frames = np.unique(np.linspace(0, T - 1, min(num_frames, T)).round().astype(int))
+    diag = bbox_diagonal(gt_verts)
+    pf, gf = np.asarray(pred_faces, np.int64), np.asarray(gt_faces, np.int64)
+    fs: dict[str, list[float]] = {f"{100 * r:g}%": [] for r in ratios}
+    nc, rp, rg = [], [], []
+    for t in frames:
+        pv = sims[t](pred_verts[t])
+        gv = np.asarray(gt_verts[t], np.float64)
+        p, pi = sample_surface_faces(pv, pf, n_points, [seed, int(t), 3])
+        g, gi = sample_surface_faces(gv, gf, n_points, [seed, int(t), 3])
+        for r in ratios:
+            fs[f"{100 * r:g}%"].append(chamfer_fscore(p, g, r * diag[t])["fscore"])
+        nc.append(_normal_consistency(p, _face_normals(pv, pf)[pi], g, _face_normals(gv, gf)[gi]))
+        rp.append(roughness(pv, pf))
+        rg.append(roughness(gv, gf))
+    return {"fscore": {k: float(np.mean(v)) for k, v in fs.items()}, "normal_consistency": float(np.mean(nc)),
+            "roughness": {"pred": float(np.mean(rp)), "truth": float(np.mean(rg)), "angle_deg": ROUGH_ANGLE_DEG},
+            "frames": [int(t) for t in frames]}

@@ -1,0 +1,70 @@
+"""Stop requests: Ctrl-C and SIGTERM set one flag that every long loop of a fit checks.
+
+Inside :func:`on_signals` (the fit, the ``s3o-fit`` command) SIGINT and SIGTERM do not raise where the
+interpreter happens to be: they ask for a stop, and each long loop (optical flow, the coarse, hypothesis,
+warm-up and joint steps, resampling, export, renders) checks :func:`requested` once per item and leaves
+through :class:`Interrupted` at a point from which the work can continue: the fit writes a checkpoint there
+first, so ``--resume`` ends where an uninterrupted run ends. Every item is shorter than two seconds, so the
+stop is that prompt.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import signal
+import threading
+
+log = logging.getLogger(__name__)
+
+_flag = threading.Event()
+_depth = 0
+
+
+class Interrupted(Exception):
+    """A stop was requested (Ctrl-C, SIGTERM); the message says where the work stopped and what was kept."""
+
+
+def request() -> None:
+    """Ask every long loop to stop at its next check (safe from a signal handler and from any thread)."""
+    _flag.set()
+
+
+def requested() -> bool:
+    """Has a stop been asked for since the outermost :func:`on_signals` began?"""
+    return _flag.is_set()
+
+
+def check(where: str) -> None:
+    """Raise :class:`Interrupted` naming ``where`` when a stop was requested."""
+    if _flag.is_set():
+        raise Interrupted(f"stopped during {where}")
+
+
+def _handle(signum, frame) -> None:
+    if not _flag.is_set():
+        log.warning("%s: stopping at the next safe point (a checkpoint where there is one to write)",
+                    signal.Signals(signum).name)
+    request()
+
+
+@contextlib.contextmanager
+def on_signals():
+    """SIGINT and SIGTERM request a stop inside the block (the main thread only; elsewhere a no-op). The flag is
+    cleared when the outermost block begins, and the previous handlers come back when it ends."""
+    global _depth
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    if _depth == 0:
+        _flag.clear()
+    _depth += 1
+    for sig in old:
+        signal.signal(sig, _handle)
+    try:
+        yield
+    finally:
+        _depth -= 1
+        for sig, h in old.items():
+            signal.signal(sig, h)

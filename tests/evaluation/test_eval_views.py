@@ -1,0 +1,111 @@
+"""The views from every side and the surface figures: each against a dense twin or a known answer, and on
+controls (the truth scores at the top, the truth frozen in one pose clearly lower)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import trimesh
+from eval_scene import cam_from_world, rot, two_box_sequence
+
+from s3o_warp.evaluation.shape import Similarity, frame_similarities, sample_surface, sample_surface_faces, shape_metrics
+from s3o_warp.evaluation.views import body_axes, novel_view_iou, roughness, silhouette, surface_quality
+
+IDENTITY = Similarity(1.0, np.eye(3), np.zeros(3))
+
+
+def test_silhouette_matches_point_in_triangle_at_pixel_centres():
+    rng = np.random.default_rng(0)
+    pts = rng.random((30, 2)) * 40.0
+    faces = rng.integers(0, 30, (12, 3))
+    img = silhouette(pts, faces, np.zeros(2), 0.25, 161)
+    rr, cc = np.mgrid[0:161, 0:161]
+    q = 0.25 * np.stack([cc.ravel(), rr.ravel()], 1).astype(np.float64)
+    dense = np.zeros(q.shape[0], bool)
+    for a, b, c in pts[faces]:  # barycentric sign test, the twin
+        def side(p0, p1):
+            return (p1[0] - p0[0]) * (q[:, 1] - p0[1]) - (p1[1] - p0[1]) * (q[:, 0] - p0[0])
+        s1, s2, s3 = side(a, b), side(b, c), side(c, a)
+        dense |= ((s1 >= 0) & (s2 >= 0) & (s3 >= 0)) | ((s1 <= 0) & (s2 <= 0) & (s3 <= 0))
+    dense = dense.reshape(161, 161)
+    inter, union = (img.astype(bool) & dense).sum(), (img.astype(bool) | dense).sum()
+    assert dense.sum() > 3000 and inter / dense.sum() > 0.99  # every pixel centre inside is filled
+    assert inter / union > 0.93  # the raster rule differs on the edges' pixels only
+
+
+def test_sample_surface_faces_gives_sample_surfaces_points_on_their_faces():
+    m = trimesh.creation.icosphere(2)
+    p, f = sample_surface_faces(m.vertices, m.faces, 500, [3, 1])
+    assert np.array_equal(p, sample_surface(m.vertices, m.faces, 500, [3, 1]))
+    tri = m.vertices[m.faces[f]]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    assert np.abs(((p - tri[:, 0]) * n).sum(-1)).max() < 1e-9  # each point lies in its face's plane
+
+
+def test_body_axes_follow_the_worlds_up_and_the_bodys_length():
+    box = trimesh.creation.box(extents=(3.0, 1.0, 0.5)).vertices  # long along world x, up is y
+    R = rot("y", 0.7) @ rot("z", 0.3)
+    c2w = np.eye(4)[None].repeat(2, 0)
+    c2w[:, :3, :3] = R
+    c2w[:, :3, 3] = [0.1, 0.2, 5.0]
+    cam = np.stack([box @ R.T + c2w[0, :3, 3]] * 2)
+    ax = body_axes(cam, c2w)
+    fwd_world = np.array([1.0, 0.0, 0.0])
+    up_world = np.array([0.0, 1.0, 0.0])
+    assert abs(ax["top"][0, 0] @ (R @ fwd_world)) == pytest.approx(1.0)  # the top view's first axis: the length
+    assert abs(ax["front"][0, 1] @ (R @ up_world)) == pytest.approx(1.0)
+    extent = {k: np.ptp(cam[0] @ a[0].T, axis=0) for k, a in ax.items()}
+    assert sorted(extent["top"]) == pytest.approx([0.5, 3.0]) and sorted(extent["front"]) == pytest.approx([0.5, 1.0])
+    assert sorted(extent["side"]) == pytest.approx([1.0, 3.0])
+
+
+def test_truth_scores_one_and_frozen_truth_lower():
+    verts, faces, _, _ = two_box_sequence(T=6)
+    c2w = cam_from_world(6)
+    truth = novel_view_iou(verts, faces, verts, faces, c2w, [IDENTITY] * 6)
+    assert truth["mean"] == 1.0 and truth["frames"] == [0, 1, 2, 3, 4, 5]
+    frozen = np.repeat(verts[:1], 6, 0)
+    _, sim = shape_metrics(frozen, faces, verts, faces, n_points=500)
+    seq = novel_view_iou(frozen, faces, verts, faces, c2w, [sim] * 6)
+    sims = frame_similarities(frozen, faces, verts, faces, sim, n_points=800)
+    own = novel_view_iou(frozen, faces, verts, faces, c2w, sims)
+    assert novel_view_iou(frozen, faces, verts, faces, c2w, [IDENTITY] * 6)["per_frame"]["top"][0] == 1.0
+    assert seq["mean"] < 0.7 and own["mean"] < 0.97 and seq["mean"] < own["mean"]
+    # a wrong width shows from above and from the front, not from the side
+    thin = verts.copy()
+    centre = thin.mean(1, keepdims=True)
+    depth = np.einsum("tva,ta->tv", thin - centre, c2w[:, :3, 2])  # along the world's z: the boxes' width
+    thin -= 0.6 * depth[..., None] * c2w[:, None, :3, 2]
+    blade = novel_view_iou(thin, faces, verts, faces, c2w, [IDENTITY] * 6)["per_view"]
+    assert blade["side"] > 0.99 and blade["top"] < 0.7 and blade["front"] < 0.7
+
+
+def test_roughness_is_zero_on_a_smooth_sphere_and_high_on_a_crumpled_one():
+    m = trimesh.creation.icosphere(3)
+    assert roughness(m.vertices, m.faces) == 0.0
+    rng = np.random.default_rng(1)
+    crumpled = m.vertices * (1.0 + 0.15 * rng.standard_normal((len(m.vertices), 1)))
+    assert roughness(crumpled, m.faces) > 0.2
+    # the twin: angle between the two faces' normals, edge by edge
+    n = m.face_normals
+    adj = m.face_adjacency
+    dense = np.degrees(np.arccos(np.clip((n[adj[:, 0]] * n[adj[:, 1]]).sum(-1), -1, 1)))
+    assert roughness(m.vertices, m.faces, angle_deg=10.0) == pytest.approx((dense > 10.0).mean())
+    # split along seams: vertices at one place merge, so the figure does not change
+    split = m.vertices[m.faces].reshape(-1, 3)
+    assert roughness(split, np.arange(len(split)).reshape(-1, 3), angle_deg=10.0) == pytest.approx((dense > 10.0).mean())
+
+
+def test_surface_quality_of_the_truth_and_of_a_bumpy_copy():
+    m = trimesh.creation.icosphere(3)
+    v = np.stack([m.vertices + [0, 0, 5]] * 3)
+    q = surface_quality(v, m.faces, v, m.faces, [IDENTITY] * 3, n_points=2000)
+    assert q["fscore"] == {"1%": 1.0, "2%": 1.0} and q["normal_consistency"] == pytest.approx(1.0, abs=1e-9)
+    rng = np.random.default_rng(2)
+    bumpy = v * (1.0 + 0.03 * rng.standard_normal((3, len(m.vertices), 1)))
+    b = surface_quality(bumpy, m.faces, v, m.faces, [IDENTITY] * 3, n_points=2000)
+    assert b["fscore"]["1%"] < b["fscore"]["2%"] < 1.0
+    assert b["normal_consistency"] < 0.95 and b["roughness"]["pred"] > b["roughness"]["truth"] == 0.0
+    assert math.isfinite(b["normal_consistency"])
