@@ -153,6 +153,14 @@ def preview_frame(image: np.ndarray, mask: np.ndarray, k: int, box: Box | None =
     return out
 
 
+def _preview(files: list[Path], masks: Path, boxes: dict[int, Box], name: str) -> Iterator[np.ndarray]:
+    """The preview's frames (:func:`preview_frame`), one at a time."""
+    for k, f in enumerate(tqdm(files, desc=f"{name}: preview", unit="frame", leave=False, disable=None)):
+        interrupt.check(_STOPPED)
+        mask = cv2.imread(str(masks / f"{f.stem}.png"), cv2.IMREAD_GRAYSCALE) > 127
+        yield preview_frame(_read_rgb(f), mask, k, boxes.get(k))
+
+
 def _segment(segmenter: str, files: list[Path], boxes: dict[int, Box], checkpoint: Path | None,
              flow_preset: str) -> Iterator[tuple[int, np.ndarray]]:
     if segmenter == "sam2":
@@ -221,10 +229,7 @@ def make_masks(source, out, boxes: dict[int, Box], segmenter: str = "grabcut", c
                 ) from None
             finally:
                 bar.close()
-            write_video(
-                (interrupt.check(_STOPPED) or preview_frame(_read_rgb(files[k]), cv2.imread(str(tmp / "masks" / f"{n}.png"), 0) > 127, k, boxes.get(k))
-                 for k, n in enumerate(tqdm(names, desc=f"{frames.name}: preview", unit="frame", leave=False, disable=None))),
-                tmp / "masks_preview.mp4", fps)
+            write_video(_preview(files, tmp / "masks", boxes, frames.name), tmp / "masks_preview.mp4", fps)
             write_json(tmp / "masks.json", {
                 "request": request,
                 "fps": fps if frames.fps else None,
