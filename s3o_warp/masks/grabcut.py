@@ -8,7 +8,7 @@ homography is not found, e.g. a textureless background). GrabCut then runs :data
 
 From frame t to its neighbour t': the mask of t is warped to t' by the backward flow (DIS, the fit's flow
 settings); pixels farther than a band outside it are background, and GrabCut decides the warped mask and the band,
-with the object's colour model learned on frame K and frozen (``GC_EVAL_FREEZE_MODEL``) and the background's
+with the object's colour model learned on frame K (inside its mask) and frozen (``GC_EVAL_FREEZE_MODEL``) and the background's
 learned on t' around the object. Nothing inside the warped mask is forced to be object: background uncovered
 behind a moving object, which the flow carries along with it, would be kept for good. What is forced to be object
 is what clearly moves otherwise than the background (the background's homography fitted to the flow outside the
@@ -69,6 +69,12 @@ Fox this kept 3,600-4,300 of the object's moving pixels and 16-120 of the backgr
 
 MOVING_ERODE = 0.03
 """The moving region is eroded by this fraction of the square root of the mask's area before it marks object."""
+
+OBJECT_ERODE = 0.05
+"""The object's colour model is learned on the box frame's mask eroded by this fraction of the square root of its
+area: ground the box frame's GrabCut took in between the legs would otherwise count as object in every frame. Mean
+/ worst-frame IoU from the whole mask -> eroded: DAVIS cows 0.825 / 0.730 -> 0.850 / 0.741, dog 0.905 / 0.819 ->
+0.908 / 0.819, Fox 0.975 / 0.934 -> 0.974 / 0.934, horse 0.963 / 0.931 -> 0.962 / 0.932."""
 
 COLOUR_SAMPLES = 20000
 """Pixels drawn to learn each colour model (all of them when fewer)."""
@@ -285,7 +291,8 @@ def segment_video(read: Callable[[int], np.ndarray], n: int, boxes: dict[int, Bo
         mask = segment_box(image, boxes[a], neighbours, dis)
         yield a, mask
         area = int(mask.sum())
-        object_pixels = image[mask]
+        core = cv2.erode(mask.astype(np.uint8), _disk(max(1, int(OBJECT_ERODE * math.sqrt(area))))) > 0
+        object_pixels = image[core if core.any() else mask]
         for stop, step in ((hi, 1), (lo, -1)):
             prev_image, prev_mask = image, mask
             for k in range(a + step, stop + step, step):
