@@ -8,13 +8,14 @@ homography is not found, e.g. a textureless background). GrabCut then runs :data
 
 From frame t to its neighbour t': the mask of t is warped to t' by the backward flow (DIS, the fit's flow
 settings); pixels farther than a band outside it are background, and GrabCut decides the warped mask and the band,
-with the object's colour model learned on frame K (inside its mask) and frozen (``GC_EVAL_FREEZE_MODEL``) and the background's
-learned on t' around the object. Nothing inside the warped mask is forced to be object: background uncovered
-behind a moving object, which the flow carries along with it, would be kept for good. What is forced to be object
-is what clearly moves otherwise than the background (the background's homography fitted to the flow outside the
-band) where the forward and backward flows agree: a pale leg or head on pale ground, whose colour alone loses it. A frozen object model keeps the background from leaking in over
-time; the band lets a limb that moves faster than the flow follows be found again. The components of the result
-that lie on the warped mask are kept.
+with the object's colour model learned on frame K (inside its mask) and frozen (``GC_EVAL_FREEZE_MODEL``) and the
+background's learned on t' around the object. A frozen object model keeps the background from leaking in over
+time; the band lets a limb that moves faster than the flow follows be found again. Nothing inside the warped mask
+is forced to be object: background uncovered behind a moving object, which the flow carries along with it, would
+be kept for good. What is forced to be object is what clearly moves otherwise than the background (the
+background's homography fitted to the flow outside the band) where the forward and backward flows agree: a pale
+leg or head on pale ground, whose colour alone loses it. The components of the result that lie on the warped mask
+are kept.
 
 Every GrabCut runs with OpenCV's random generator seeded, so a video's masks repeat bit for bit.
 """
