@@ -76,6 +76,12 @@ def true_box(mask: np.ndarray) -> tuple[int, int, int, int]:
     return (max(0, x0 - BOX_MARGIN), max(0, y0 - BOX_MARGIN), min(W - 1, x1 + BOX_MARGIN), min(H - 1, y1 + BOX_MARGIN))
 
 
+def command_line(out_dir) -> str:
+    """This process's command as a benchmark row records it: the output folder as ``OUT_DIR`` (a machine's own path
+    says nothing to another)."""
+    return " ".join(["python"] + ["OUT_DIR" if a == str(out_dir) else a for a in sys.argv])
+
+
 def prepare_case(case: str, work: Path) -> Path | None:
     """The sequence folder of a case (rendered or converted on first use), or None when data is missing."""
     seq = work / "sequences" / case
@@ -173,7 +179,7 @@ def main(argv=None) -> int:
     work = Path(args.out_dir)
     dest = REPO / "benchmarks" / f"{'profile' if args.profile else 'fit'}-{device.type}.json"
     header = dict(
-        command=" ".join(["python"] + sys.argv),
+        command=command_line(args.out_dir),
         device=str(device),
         device_name=torch.cuda.get_device_name(device) if device.type == "cuda" else cpu_name(),
         cpu_count=os.cpu_count(),
@@ -206,7 +212,7 @@ def main(argv=None) -> int:
                 if t_o is not None:
                     pictures.append((t_o, run / "renders" / "bones.png"))
                 entry = {
-                    "command": " ".join(["python"] + sys.argv),
+                    "command": header["command"],
                     "case": case, "method": method, "seed": seed, "preset": args.preset, "overrides": args.overrides + extra,
                     "wall_seconds": round(wall, 1), "phase_seconds": phase_times(run),
                     **({"branched_from": str(parent) if args.branch_from else parent.name, "note": "wall_seconds: this fit's own (after the branch); "

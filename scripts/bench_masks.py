@@ -28,7 +28,7 @@ from s3o_warp.masks.make import make_masks
 from s3o_warp.provenance import REPO, cpu_name, git_commit, versions
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_fit import DATA, SYNTH, prepare_case, true_box  # noqa: E402
+from bench_fit import DATA, SYNTH, command_line, prepare_case, true_box  # noqa: E402
 
 
 def frames_and_truth(case: str, work: Path) -> tuple[Path, Path] | None:
@@ -52,7 +52,7 @@ def main(argv=None) -> int:
     work = Path(args.out_dir)
     dest = REPO / "benchmarks" / "masks-cpu.json"
     header = dict(
-        command=" ".join(["python"] + [a if not a.startswith(str(work)) else "OUT_DIR" for a in sys.argv]),
+        command=command_line(args.out_dir),
         device="cpu", device_name=cpu_name(), cpu_count=os.cpu_count(), versions=versions(),
         opencv=cv2.__version__, git_commit=git_commit(),
     )
