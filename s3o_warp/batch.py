@@ -318,7 +318,7 @@ def connect(address: str | None):
             ray.init(address=address, **kw)
     except Exception as e:  # Ray raises ConnectionError, RuntimeError, ValueError... each one line here
         where = f"the Ray cluster at {address}" if address else "a local Ray"
-        fix = "start one with `ray start --head` or drop --address" if address else "check `ray status` and /tmp/ray"
+        fix = "start one with `ray start --head` or drop --address" if address else "check `ray status` and Ray's logs"
         raise InputError(f"--address: cannot start or join {where} ({_one_line(e)}); {fix}") from None
     return ray, True
 
