@@ -148,7 +148,7 @@ class MotionConfig:
     w_flow: Annotated[float, NONNEG] = 0.02
     """Weight of the optical-flow loss (confidence-weighted L2 of rendered vs observed flow, crop pixels)."""
     w_color: Annotated[float, NONNEG] = 0.2
-    """Weight of the colour L1 loss; it moves the vertex colours only, never the surface, bones or camera."""
+    """Weight of the colour L1 loss."""
     w_cover: Annotated[float, NONNEG] = 0.2
     """Weight of the mask-coverage loss (``losses.coverage_loss``, not in the paper): every mask pixel the hard
     render leaves uncovered pulls its nearest projected vertex (hidden ones included) towards it, from any

@@ -82,9 +82,7 @@ def motion_terms(model: S3OModel, data: FitData, frames: torch.Tensor, mc: Motio
     face_index, bary, _depth = rasterize(verts, m.faces, K, (S, S))
     fg = (face_index >= 0).float()
     if mc.w_color > 0:
-        # colours only: through the barycentrics the term would move the surface to match the texture, which
-        # crumples it where the video never looks
-        col = interpolate(m.colors(), m.faces, face_index, bary.detach())
+        col = interpolate(m.colors(), m.faces, face_index, bary)
         terms["color"] = (mc.w_color, L.color_loss(col, d.images[frames], fg * mask))
     if mc.w_cover > 0:
         uncovered = (mask > 0.5) & (face_index < 0)
