@@ -12,6 +12,7 @@ import os
 import sys
 import tempfile
 import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import torch
 import warp as wp
@@ -67,6 +68,30 @@ def holding_back(fn, marker: str) -> str | None:
         sys.stderr.flush()
     held = "".join(line for line in lines if marker in line).strip()
     return held or None
+
+
+_pool: ThreadPoolExecutor | None = None
+
+
+def frame_chunks(t: torch.Tensor, T: int) -> list[slice]:
+    """Ranges of the T frames to launch side by side. Warp runs a CPU launch on one thread and lets go of the GIL
+    while it runs, so on the CPU the frames are split into one range per torch thread (``torch.get_num_threads()``,
+    which OMP_NUM_THREADS sets); on CUDA a launch already fills the device: one range."""
+    n = 1 if t.is_cuda else max(1, min(T, torch.get_num_threads()))
+    edges = [round(i * T / n) for i in range(n + 1)]
+    return [slice(edges[i], edges[i + 1]) for i in range(n)]
+
+
+def map_chunks(fn, chunks: list) -> list:
+    """``fn(chunk)`` for every chunk, on worker threads when there are several; the results in order."""
+    global _pool
+    if len(chunks) == 1:
+        return [fn(chunks[0])]
+    if _pool is None:
+        with _init_lock:
+            if _pool is None:
+                _pool = ThreadPoolExecutor(max_workers=max(2, os.cpu_count() or 2), thread_name_prefix="warp-cpu")
+    return list(_pool.map(fn, chunks))
 
 
 def wp_device(t: torch.Tensor) -> wp.context.Device:

@@ -21,13 +21,17 @@ from dataclasses import dataclass
 import torch
 import warp as wp
 
-from ._warp import check_float, check_shape, same_device, stream_of, to_wp, wp_device
+from ._warp import check_float, check_shape, frame_chunks, map_chunks, same_device, stream_of, to_wp, wp_device
 from .raster_backward import (
+    barycentrics_grad_kernel,
+    interpolate_grad_kernel,
     soft_silhouette_grad_kernel,
     soft_silhouette_grad_naive_kernel,
 )
 from .raster_forward import (
+    barycentrics_kernel,
     count_tile_faces_kernel,
+    interpolate_kernel,
     fill_tile_faces_kernel,
     rasterize_faces_kernel,
     render_soft_silhouette_kernel,
@@ -169,42 +173,57 @@ def _cutoff(sigma: float) -> float:
 
 
 class _SoftSilhouetteFn(torch.autograd.Function):
-    """Binned soft silhouette of projected vertices xy (T, V, 2) -> A (T, H, W)."""
+    """Binned soft silhouette of projected vertices xy (T, V, 2) -> A (T, H, W); on the CPU the frames are split
+    into ranges that run side by side (``frame_chunks``), each binned and launched on its own."""
 
     @staticmethod
     def forward(ctx, xy, faces32, front, H, W, sigma, tile):
         T = xy.shape[0]
         cutoff = _cutoff(sigma)
-        bins = _bin_faces(xy, faces32, front, H, W, tile, math.sqrt(cutoff))
         log_trans = torch.empty((T, H, W), dtype=torch.float32, device=xy.device)
-        with stream_of(xy):
-            wp.launch(render_soft_silhouette_kernel, dim=(T, H, W), device=wp_device(xy),
-                      inputs=[to_wp(xy, wp.vec2), to_wp(faces32, wp.vec3i), to_wp(bins.start), to_wp(bins.count),
-                              to_wp(bins.faces), tile, bins.ntx, bins.bins_per_frame, 1.0 / sigma, cutoff],
-                      outputs=[to_wp(log_trans)])
-        ctx.save_for_backward(xy, faces32, log_trans, bins.faces, bins.entry_bin)
-        ctx.saved_misc = (H, W, sigma, tile, bins.ntx, bins.bins_per_frame)
+        chunks = frame_chunks(xy, T)
+
+        def render(s: slice) -> _Bins:
+            bins = _bin_faces(xy[s], faces32, front[s], H, W, tile, math.sqrt(cutoff))
+            with stream_of(xy):
+                wp.launch(render_soft_silhouette_kernel, dim=(s.stop - s.start, H, W), device=wp_device(xy),
+                          inputs=[to_wp(xy[s], wp.vec2), to_wp(faces32, wp.vec3i), to_wp(bins.start),
+                                  to_wp(bins.count), to_wp(bins.faces), tile, bins.ntx, bins.bins_per_frame,
+                                  1.0 / sigma, cutoff],
+                          outputs=[to_wp(log_trans[s])])
+            return bins
+
+        bins = map_chunks(render, chunks)
+        ctx.save_for_backward(xy, faces32, log_trans, *[t for b in bins for t in (b.faces, b.entry_bin)])
+        ctx.saved_misc = (H, W, sigma, tile, bins[0].ntx, bins[0].bins_per_frame, chunks)
         return -torch.expm1(log_trans)
 
     @staticmethod
     def backward(ctx, grad_A):
-        xy, faces32, log_trans, bin_faces, entry_bin = ctx.saved_tensors
-        H, W, sigma, tile, ntx, bpf = ctx.saved_misc
-        T, V = xy.shape[0], xy.shape[1]
+        xy, faces32, log_trans, *entries = ctx.saved_tensors
+        H, W, sigma, tile, ntx, bpf, chunks = ctx.saved_misc
+        V = xy.shape[1]
         gpix = (grad_A * torch.exp(log_trans)).contiguous()  # dL/dx_j = gpix * D_j
-        n = bin_faces.shape[0]
-        entry_grad = torch.zeros((n, 3, 2), dtype=torch.float64, device=xy.device)
-        if n > 0:
-            with stream_of(xy):
-                wp.launch(soft_silhouette_grad_kernel, dim=n, device=wp_device(xy),
-                          inputs=[to_wp(xy, wp.vec2), to_wp(faces32, wp.vec3i), to_wp(bin_faces), to_wp(entry_bin),
-                                  to_wp(gpix), tile, ntx, bpf, W, H, 1.0 / sigma, _cutoff(sigma)],
-                          outputs=[to_wp(entry_grad, wp.vec2d)])
-        t = entry_bin.long() // bpf
-        vid = t[:, None] * V + faces32.long()[bin_faces.long()]  # (n, 3)
-        grad64 = torch.zeros((T * V, 2), dtype=torch.float64, device=xy.device)
-        grad64.index_add_(0, vid.reshape(-1), entry_grad.reshape(-1, 2))
-        return grad64.reshape(T, V, 2).to(xy.dtype), None, None, None, None, None, None
+
+        def grad(k: int) -> torch.Tensor:
+            s, bin_faces, entry_bin = chunks[k], entries[2 * k], entries[2 * k + 1]
+            n, Tc = bin_faces.shape[0], s.stop - s.start
+            entry_grad = torch.zeros((n, 3, 2), dtype=torch.float64, device=xy.device)
+            if n > 0:
+                with stream_of(xy):
+                    wp.launch(soft_silhouette_grad_kernel, dim=n, device=wp_device(xy),
+                              inputs=[to_wp(xy[s], wp.vec2), to_wp(faces32, wp.vec3i), to_wp(bin_faces),
+                                      to_wp(entry_bin), to_wp(gpix[s]), tile, ntx, bpf, W, H, 1.0 / sigma,
+                                      _cutoff(sigma)],
+                              outputs=[to_wp(entry_grad, wp.vec2d)])
+            t = entry_bin.long() // bpf
+            vid = t[:, None] * V + faces32.long()[bin_faces.long()]  # (n, 3)
+            grad64 = torch.zeros((Tc * V, 2), dtype=torch.float64, device=xy.device)
+            grad64.index_add_(0, vid.reshape(-1), entry_grad.reshape(-1, 2))
+            return grad64.reshape(Tc, V, 2)
+
+        grads = map_chunks(grad, list(range(len(chunks))))
+        return torch.cat(grads).to(xy.dtype), None, None, None, None, None, None
 
 
 class _SoftSilhouetteNaiveFn(torch.autograd.Function):
@@ -289,21 +308,106 @@ def soft_silhouette_naive(verts, faces, K, image_size, sigma: float = 1.0, near:
 # z-buffer and interpolation
 
 
-def _pixel_centres(rows: torch.Tensor, cols: torch.Tensor, dtype) -> torch.Tensor:
-    return torch.stack([cols.to(dtype), rows.to(dtype)], dim=-1)
+class _BarycentricsFn(torch.autograd.Function):
+    """Perspective-correct barycentrics (T, H, W, 3) and depth (T, H, W) of the z-buffer's visible faces, from
+    projected vertices xy (T, V, 2) and their camera z (T, V); face_index (T, H, W) int32 is fixed."""
+
+    @staticmethod
+    def forward(ctx, xy, z, faces32, face_index):
+        T, H, W = face_index.shape
+        bary = torch.empty((T, H, W, 3), dtype=xy.dtype, device=xy.device)
+        depth = torch.empty((T, H, W), dtype=xy.dtype, device=xy.device)
+
+        def launch(s: slice) -> None:
+            with stream_of(xy):
+                wp.launch(barycentrics_kernel, dim=(s.stop - s.start, H, W), device=wp_device(xy),
+                          inputs=[to_wp(xy[s], wp.vec2), to_wp(z[s]), to_wp(faces32, wp.vec3i), to_wp(face_index[s])],
+                          outputs=[to_wp(bary[s], wp.vec3), to_wp(depth[s])])
+
+        map_chunks(launch, frame_chunks(xy, T))
+        ctx.save_for_backward(xy, z, faces32, face_index)
+        return bary, depth
+
+    @staticmethod
+    def backward(ctx, g_bary, g_depth):
+        xy, z, faces32, face_index = ctx.saved_tensors
+        T, H, W = face_index.shape
+        g_bary = torch.zeros((T, H, W, 3), dtype=xy.dtype, device=xy.device) if g_bary is None else g_bary.contiguous()
+        g_depth = torch.zeros((T, H, W), dtype=xy.dtype, device=xy.device) if g_depth is None else g_depth.contiguous()
+        g_xy = torch.zeros((*xy.shape[:2], 2), dtype=torch.float64, device=xy.device)
+        g_z = torch.zeros(z.shape, dtype=torch.float64, device=xy.device)
+
+        def launch(s: slice) -> None:
+            with stream_of(xy):
+                wp.launch(barycentrics_grad_kernel, dim=(s.stop - s.start, H, W), device=wp_device(xy),
+                          inputs=[to_wp(xy[s], wp.vec2), to_wp(z[s]), to_wp(faces32, wp.vec3i), to_wp(face_index[s]),
+                                  to_wp(g_bary[s], wp.vec3), to_wp(g_depth[s])],
+                          outputs=[to_wp(g_xy[s], wp.vec2d), to_wp(g_z[s])])
+
+        map_chunks(launch, frame_chunks(xy, T))
+        return g_xy.to(xy.dtype), g_z.to(z.dtype), None, None
 
 
-def _cross(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+class _InterpolateFn(torch.autograd.Function):
+    """out (T, H, W, C) = sum_i bary_i attr[faces[f, i]] with attr (V, C) or (T, V, C); face_index fixed."""
+
+    @staticmethod
+    def forward(ctx, attr, faces32, face_index, bary):
+        T, H, W = face_index.shape
+        C = attr.shape[-1]
+        per_frame = int(attr.dim() == 3)
+        a3 = (attr if per_frame else attr[None]).contiguous()
+        bary = bary.contiguous()
+        out = torch.empty((T, H, W, C), dtype=attr.dtype, device=attr.device)
+
+        def launch(s: slice) -> None:
+            with stream_of(attr):
+                wp.launch(interpolate_kernel, dim=(s.stop - s.start, H, W), device=wp_device(attr),
+                          inputs=[to_wp(a3[s] if per_frame else a3), per_frame, to_wp(faces32, wp.vec3i),
+                                  to_wp(face_index[s]), to_wp(bary[s], wp.vec3)],
+                          outputs=[to_wp(out[s])])
+
+        map_chunks(launch, frame_chunks(attr, T))
+        ctx.save_for_backward(a3, faces32, face_index, bary)
+        ctx.per_frame = per_frame
+        return out
+
+    @staticmethod
+    def backward(ctx, g_out):
+        a3, faces32, face_index, bary = ctx.saved_tensors
+        per_frame = ctx.per_frame
+        T, H, W = face_index.shape
+        want_attr = ctx.needs_input_grad[0]
+        g_out = g_out.contiguous()
+        g_bary = torch.empty((T, H, W, 3), dtype=bary.dtype, device=bary.device)
+        chunks = frame_chunks(a3, T)
+
+        def launch(s: slice) -> torch.Tensor:
+            # per frame: each range its own rows of g_attr; one attribute set: each range its own sum
+            n = s.stop - s.start if per_frame else 1
+            g_attr = torch.zeros((n, *a3.shape[1:]) if want_attr else (1, 1, 1), dtype=torch.float64, device=a3.device)
+            with stream_of(a3):
+                wp.launch(interpolate_grad_kernel, dim=(s.stop - s.start, H, W), device=wp_device(a3),
+                          inputs=[to_wp(a3[s] if per_frame else a3), per_frame, to_wp(faces32, wp.vec3i),
+                                  to_wp(face_index[s]), to_wp(bary[s], wp.vec3), to_wp(g_out[s]), int(want_attr)],
+                          outputs=[to_wp(g_attr), to_wp(g_bary[s], wp.vec3)])
+            return g_attr
+
+        parts = map_chunks(launch, chunks)
+        ga = None
+        if want_attr:
+            ga = torch.cat(parts) if per_frame else sum(parts[1:], parts[0])[0]
+            ga = ga.to(a3.dtype)
+        return ga, None, None, g_bary if ctx.needs_input_grad[3] else None
 
 
 def rasterize(verts, faces, K, image_size, tile_size: int = 8, near: float = 1e-3):
     """Z-buffer rasterisation: visible face, perspective-correct barycentrics and depth per pixel.
 
-    Design: a binned Warp kernel finds the visible face of every pixel (no gradient); bary and
-    depth are then recomputed in torch from the gathered face vertices, so autograd gives exact
-    gradients of the analytic barycentric formula w.r.t. ``verts`` and ``K`` (like nvdiffrast
-    without antialiasing: no gradient through visibility changes).
+    Design: a binned Warp kernel finds the visible face of every pixel (no gradient); a second kernel
+    computes bary and depth of that face from the projected vertices, with a hand-written adjoint
+    (``raster_backward.barycentrics_grad_kernel``), so gradients of the analytic barycentric formula reach
+    ``verts`` and ``K`` (like nvdiffrast without antialiasing: no gradient through visibility changes).
 
     Args:
         verts: (T, V, 3) float32 camera-space vertices (OpenCV frame).
@@ -327,44 +431,38 @@ def rasterize(verts, faces, K, image_size, tile_size: int = 8, near: float = 1e-
     _check_positive(op, "tile_size", tile_size, integer=True)
     _check_positive(op, "near", near)
     xy, z, front = _project(verts, faces32, K, near)
-    with torch.no_grad():
-        bins = _bin_faces(xy.detach(), faces32, front, H, W, int(tile_size), 0.0)
-        F = faces32.shape[0]
-        rows = torch.empty((T, F, 3, 3), dtype=torch.float32, device=verts.device)
-        inv_z = torch.empty((T, F, 3), dtype=torch.float32, device=verts.device)
-        face_index = torch.empty((T, H, W), dtype=torch.int32, device=verts.device)
+    face_index = torch.empty((T, H, W), dtype=torch.int32, device=verts.device)
+    F = faces32.shape[0]
+    xy_d = xy.detach()
+
+    def raster(s: slice) -> None:  # the frames of s: visible face per pixel
+        Tc = s.stop - s.start
+        bins = _bin_faces(xy_d[s], faces32, front[s], H, W, int(tile_size), 0.0)
+        rows = torch.empty((Tc, F, 3, 3), dtype=torch.float32, device=verts.device)
+        inv_z = torch.empty((Tc, F, 3), dtype=torch.float32, device=verts.device)
         dev = wp_device(verts)
         with stream_of(verts):
-            wp.launch(setup_raster_faces_kernel, dim=(T, F), device=dev,
-                      inputs=[to_wp(xy, wp.vec2), to_wp(z.contiguous()), to_wp(faces32, wp.vec3i), to_wp(front)],
+            wp.launch(setup_raster_faces_kernel, dim=(Tc, F), device=dev,
+                      inputs=[to_wp(xy_d[s], wp.vec2), to_wp(z_d[s]), to_wp(faces32, wp.vec3i), to_wp(front[s])],
                       outputs=[to_wp(rows, wp.mat33), to_wp(inv_z, wp.vec3)])
-            wp.launch(rasterize_faces_kernel, dim=(T, H, W), device=dev,
+            wp.launch(rasterize_faces_kernel, dim=(Tc, H, W), device=dev,
                       inputs=[to_wp(rows, wp.mat33), to_wp(inv_z, wp.vec3), to_wp(bins.start), to_wp(bins.count),
                               to_wp(bins.faces), int(tile_size), bins.ntx, bins.bins_per_frame],
-                      outputs=[to_wp(face_index)])
-    fg = face_index >= 0
-    t_idx, rows, cols = fg.nonzero(as_tuple=True)
-    vid = faces32.long()[face_index[fg].long()]  # (N, 3)
-    tri = xy[t_idx[:, None], vid]  # (N, 3, 2)
-    zf = z[t_idx[:, None], vid]  # (N, 3)
-    p = _pixel_centres(rows, cols, xy.dtype)
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    area2 = _cross(b - a, c - a)
-    lam = torch.stack([_cross(c - b, p - b), _cross(a - c, p - c), _cross(b - a, p - a)], -1) / area2[:, None]
-    q = lam / zf
-    s = q.sum(-1, keepdim=True)
-    bary = torch.zeros((T, H, W, 3), dtype=xy.dtype, device=xy.device)
-    depth = torch.zeros((T, H, W), dtype=xy.dtype, device=xy.device)
-    bary = bary.index_put((t_idx, rows, cols), q / s)
-    depth = depth.index_put((t_idx, rows, cols), 1.0 / s[:, 0])
+                      outputs=[to_wp(face_index[s])])
+
+    z = z.contiguous()
+    z_d = z.detach()
+    with torch.no_grad():
+        map_chunks(raster, frame_chunks(verts, T))
+    bary, depth = _BarycentricsFn.apply(xy, z, faces32, face_index)
     return face_index, bary, depth
 
 
 def interpolate(attr, faces, face_index, bary):
     """Interpolate per-vertex attributes at every pixel: out = sum_i bary_i attr[faces[f, i]].
 
-    Implemented with torch gathers on the foreground pixels only (O(pixels), autograd gives the
-    scatter-add adjoints); no Warp kernel is needed for a gather.
+    One Warp kernel per pixel, its adjoint written by hand (``raster_backward.interpolate_grad_kernel``:
+    float64 sums per vertex).
 
     Args:
         attr: (V, C) or (T, V, C) float32 per-vertex attributes (colour, flow, depth, ...).
@@ -396,10 +494,4 @@ def interpolate(attr, faces, face_index, bary):
     if face_index.numel() and (int(face_index.min()) < -1 or int(face_index.max()) >= F):
         raise ValueError(f"{op}(): face_index must be -1 or a face id in [0, {F - 1}], "
                          f"got values in [{int(face_index.min())}, {int(face_index.max())}]")
-    fg = face_index >= 0
-    t_idx, rows, cols = fg.nonzero(as_tuple=True)
-    vid = faces32.long()[face_index[fg].long()]  # (N, 3)
-    vals = attr[vid] if attr.dim() == 2 else attr[t_idx[:, None], vid]  # (N, 3, C)
-    w = bary[t_idx, rows, cols]  # (N, 3)
-    out = torch.zeros((T, H, W, C), dtype=attr.dtype, device=attr.device)
-    return out.index_put((t_idx, rows, cols), (w[..., None] * vals).sum(1))
+    return _InterpolateFn.apply(attr, faces32, face_index.to(torch.int32).contiguous(), bary)

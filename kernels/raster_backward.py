@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .raster_forward import outside_box_func, triangle_sq_dist_func
+from .raster_forward import cross2_func, outside_box_func, screen_edges_func, triangle_sq_dist_func
 
 wp.set_module_options({"enable_backward": False})
 
@@ -130,3 +130,103 @@ def soft_silhouette_grad_naive_kernel(
         wp.atomic_add(grad_xy, t, i[0], da)
         wp.atomic_add(grad_xy, t, i[1], db)
         wp.atomic_add(grad_xy, t, i[2], dc)
+
+
+@wp.func
+def cross2_adj_func(u: wp.vec2, v: wp.vec2, g: float):
+    """Adjoints (du, dv) of cross(u, v) = u.x v.y - u.y v.x for upstream g."""
+    return wp.vec2(g * v[1], -g * v[0]), wp.vec2(-g * u[1], g * u[0])
+
+
+@wp.kernel
+def barycentrics_grad_kernel(
+    xy: wp.array2d(dtype=wp.vec2),
+    z: wp.array2d(dtype=float),
+    faces: wp.array(dtype=wp.vec3i),
+    face_index: wp.array3d(dtype=wp.int32),
+    g_bary: wp.array3d(dtype=wp.vec3),
+    g_depth: wp.array3d(dtype=float),
+    # outputs (accumulated)
+    g_xy: wp.array2d(dtype=wp.vec2d),
+    g_z: wp.array2d(dtype=wp.float64),
+):
+    """Adjoint of ``barycentrics_kernel``: with q_i = l_i / z_i, s = sum q, b = q / s, depth = 1 / s,
+
+        dL/dq_i = (g_b_i - g_b . b) / s - g_depth / s^2,   dL/dl_i = dL/dq_i / z_i,   dL/dz_i = -dL/dq_i q_i / z_i,
+
+    and l_i = e_i / area2 through the edge functions' cross products; summed per vertex in float64."""
+    t, r, cpix = wp.tid()
+    f = face_index[t, r, cpix]
+    if f < 0:
+        return
+    i = faces[f]
+    a = xy[t, i[0]]
+    b = xy[t, i[1]]
+    c = xy[t, i[2]]
+    p = wp.vec2(float(cpix), float(r))
+    area2 = cross2_func(b - a, c - a)
+    e = screen_edges_func(p, a, b, c)
+    zv = wp.vec3(z[t, i[0]], z[t, i[1]], z[t, i[2]])
+    lam = e / area2
+    q = wp.vec3(lam[0] / zv[0], lam[1] / zv[1], lam[2] / zv[2])
+    s = q[0] + q[1] + q[2]
+    bw = q / s
+    gb = g_bary[t, r, cpix]
+    gq = (gb - wp.vec3(wp.dot(gb, bw))) / s - wp.vec3(g_depth[t, r, cpix] / (s * s))
+    gl = wp.vec3(gq[0] / zv[0], gq[1] / zv[1], gq[2] / zv[2])
+    ge = gl / area2
+    garea = -wp.dot(gl, lam) / area2
+    # area2 = cross(b - a, c - a)
+    gu, gv = cross2_adj_func(b - a, c - a, garea)
+    ga = -gu - gv
+    gbv = gu
+    gc = gv
+    # e0 = cross(c - b, p - b), e1 = cross(a - c, p - c), e2 = cross(b - a, p - a)
+    gu, gv = cross2_adj_func(c - b, p - b, ge[0])
+    gc = gc + gu
+    gbv = gbv - gu - gv
+    gu, gv = cross2_adj_func(a - c, p - c, ge[1])
+    ga = ga + gu
+    gc = gc - gu - gv
+    gu, gv = cross2_adj_func(b - a, p - a, ge[2])
+    gbv = gbv + gu
+    ga = ga - gu - gv
+    wp.atomic_add(g_xy, t, i[0], wp.vec2d(ga))
+    wp.atomic_add(g_xy, t, i[1], wp.vec2d(gbv))
+    wp.atomic_add(g_xy, t, i[2], wp.vec2d(gc))
+    wp.atomic_add(g_z, t, i[0], wp.float64(-gq[0] * q[0] / zv[0]))
+    wp.atomic_add(g_z, t, i[1], wp.float64(-gq[1] * q[1] / zv[1]))
+    wp.atomic_add(g_z, t, i[2], wp.float64(-gq[2] * q[2] / zv[2]))
+
+
+@wp.kernel
+def interpolate_grad_kernel(
+    attr: wp.array3d(dtype=float),
+    per_frame: int,
+    faces: wp.array(dtype=wp.vec3i),
+    face_index: wp.array3d(dtype=wp.int32),
+    bary: wp.array3d(dtype=wp.vec3),
+    g_out: wp.array4d(dtype=float),
+    want_attr: int,
+    # outputs (g_attr accumulated in float64; g_bary written per pixel)
+    g_attr: wp.array3d(dtype=wp.float64),
+    g_bary: wp.array3d(dtype=wp.vec3),
+):
+    """Adjoint of ``interpolate_kernel``: dL/dattr[v_i] += b_i g_out, dL/db_i = g_out . attr[v_i]."""
+    t, r, c = wp.tid()
+    f = face_index[t, r, c]
+    if f < 0:
+        g_bary[t, r, c] = wp.vec3(0.0)
+        return
+    ta = t * per_frame
+    i = faces[f]
+    w = bary[t, r, c]
+    gw = wp.vec3(0.0)
+    for ch in range(g_out.shape[3]):
+        g = g_out[t, r, c, ch]
+        gw = gw + wp.vec3(g * attr[ta, i[0], ch], g * attr[ta, i[1], ch], g * attr[ta, i[2], ch])
+        if want_attr != 0:
+            wp.atomic_add(g_attr, ta, i[0], ch, wp.float64(w[0] * g))
+            wp.atomic_add(g_attr, ta, i[1], ch, wp.float64(w[1] * g))
+            wp.atomic_add(g_attr, ta, i[2], ch, wp.float64(w[2] * g))
+    g_bary[t, r, c] = gw

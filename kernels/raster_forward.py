@@ -278,3 +278,65 @@ def rasterize_faces_kernel(
                     best_z = zz
                     best_f = f
     face_index[t, r, c] = best_f
+
+
+@wp.func
+def screen_edges_func(p: wp.vec2, a: wp.vec2, b: wp.vec2, c: wp.vec2):
+    """Edge functions (e0, e1, e2) of the edges opposite a, b, c at p; their sum is twice the signed area."""
+    return wp.vec3(cross2_func(c - b, p - b), cross2_func(a - c, p - c), cross2_func(b - a, p - a))
+
+
+@wp.kernel
+def barycentrics_kernel(
+    xy: wp.array2d(dtype=wp.vec2),
+    z: wp.array2d(dtype=float),
+    faces: wp.array(dtype=wp.vec3i),
+    face_index: wp.array3d(dtype=wp.int32),
+    # outputs
+    bary: wp.array3d(dtype=wp.vec3),
+    depth: wp.array3d(dtype=float),
+):
+    """Per pixel of the z-buffer: perspective-correct barycentrics b_i = (l_i / z_i) / s and depth 1 / s,
+    s = sum_k l_k / z_k, of the visible face (screen barycentrics l_i = e_i / twice the area); 0 on background."""
+    t, r, c = wp.tid()
+    f = face_index[t, r, c]
+    if f < 0:
+        bary[t, r, c] = wp.vec3(0.0)
+        depth[t, r, c] = 0.0
+        return
+    i = faces[f]
+    a = xy[t, i[0]]
+    b = xy[t, i[1]]
+    cc = xy[t, i[2]]
+    area2 = cross2_func(b - a, cc - a)
+    e = screen_edges_func(wp.vec2(float(c), float(r)), a, b, cc)
+    q = wp.vec3(e[0] / area2 / z[t, i[0]], e[1] / area2 / z[t, i[1]], e[2] / area2 / z[t, i[2]])
+    s = q[0] + q[1] + q[2]
+    bary[t, r, c] = q / s
+    depth[t, r, c] = 1.0 / s
+
+
+@wp.kernel
+def interpolate_kernel(
+    attr: wp.array3d(dtype=float),
+    per_frame: int,
+    faces: wp.array(dtype=wp.vec3i),
+    face_index: wp.array3d(dtype=wp.int32),
+    bary: wp.array3d(dtype=wp.vec3),
+    # outputs
+    out: wp.array4d(dtype=float),
+):
+    """out[t, r, c, :] = sum_i bary_i attr[t', faces[f, i], :] (t' = t, or 0 for one attribute set for all
+    frames); 0 on background."""
+    t, r, c = wp.tid()
+    f = face_index[t, r, c]
+    C = out.shape[3]
+    if f < 0:
+        for ch in range(C):
+            out[t, r, c, ch] = 0.0
+        return
+    ta = t * per_frame
+    i = faces[f]
+    w = bary[t, r, c]
+    for ch in range(C):
+        out[t, r, c, ch] = w[0] * attr[ta, i[0], ch] + w[1] * attr[ta, i[1], ch] + w[2] * attr[ta, i[2], ch]

@@ -189,6 +189,36 @@ def test_rasterize_matches_reference(device):
     _assert_rel(gK, gKr, 1e-4)
 
 
+@pytest.mark.parametrize("which", ["bary", "depth"])
+def test_rasterize_gradient_of_one_output(device, which):
+    """Only bary or only depth reaches the loss: the other's missing upstream gradient counts as zero."""
+    verts, faces, K, size = _soup(F=10, seed=7)
+    i = 1 if which == "bary" else 2
+    up = torch.randn(2, 19, 23, 3) if which == "bary" else torch.randn(2, 19, 23)
+    _, (gv,) = _grads(lambda v: rasterize(v, faces.to(device), K.to(device), size)[i], [verts.to(device)], up.to(device))
+    _, (gvr,) = _grads(lambda v: rasterize_reference(v, faces, K.double(), size)[i], [verts.double()], up.double())
+    assert gvr.abs().max() > 0
+    _assert_rel(gv, gvr, 1e-4)
+
+
+def test_interpolate_without_attribute_gradient(device):
+    """Attributes that need no gradient (constants) still pass the barycentrics' gradient back to the vertices."""
+    verts, faces, K, size = _soup(F=10, seed=8)
+    attr = torch.randn(verts.shape[1], 2)
+    up = torch.randn(2, *size, 2)
+
+    def fn(v, fcs, k, a, ras, interp):
+        fi, bary, _ = ras(v, fcs, k, size)
+        return interp(a, fcs, fi, bary)
+
+    _, (gv,) = _grads(lambda v: fn(v, faces.to(device), K.to(device), attr.to(device), rasterize, interpolate),
+                      [verts.to(device)], up.to(device))
+    _, (gvr,) = _grads(lambda v: fn(v, faces, K.double(), attr.double(), rasterize_reference, interpolate_reference),
+                       [verts.double()], up.double())
+    assert gvr.abs().max() > 0
+    _assert_rel(gv, gvr, 1e-4)
+
+
 def _bd(out, ub, ud):
     _, bary, depth = out
     return (bary * ub).sum() + (depth * ud).sum()
