@@ -81,22 +81,72 @@ def joints_inside(joints: np.ndarray, verts: np.ndarray, faces: np.ndarray, devi
             "per_joint": inside.mean(0).tolist(), "max_outside": worst}
 
 
-def gt_limbs(parents: np.ndarray, names: list[str] | None = None) -> list[dict]:
+FAN_DEG = 30.0
+"""A branching joint with three or more child chains that all point within this angle of one another (a hand's
+fingers, a paw's toes) ends one limb instead of starting several: measured on the rigs, the robot's four fingers fan
+out 18-20 degrees, every other branching of the quadrupeds and the lizard (hips, shoulders, a head's ears and nose)
+44 degrees or more. Two chains are never a fan: a pair of legs can hang nearly parallel."""
+
+
+def _fans(parents: np.ndarray, children: list[list[int]], joints: np.ndarray) -> dict[int, int]:
+    """Fan joints (see :data:`FAN_DEG`; never the root) -> the child whose subtree reaches farthest from them."""
+    def subtree(j: int) -> list[int]:
+        out, stack = [j], [j]
+        while stack:
+            kids = children[stack.pop()]
+            out += kids
+            stack += kids
+        return out
+
+    fans = {}
+    for j, kids in enumerate(children):
+        if len(kids) < 3 or parents[j] < 0:
+            continue
+        far, reach = [], []
+        for c in kids:
+            d = joints[subtree(c)] - joints[j]
+            n = np.linalg.norm(d, axis=1)
+            far.append(d[int(np.argmax(n))] / max(float(n.max()), 1e-12))
+            reach.append(float(n.max()))
+        D = np.asarray(far)
+        if float((D @ D.T).min()) >= np.cos(np.deg2rad(FAN_DEG)):
+            fans[j] = kids[int(np.argmax(reach))]
+    return fans
+
+
+def gt_limbs(parents: np.ndarray, names: list[str] | None = None, joints: np.ndarray | None = None) -> list[dict]:
     """The limbs of a joint tree: from each leaf up to (and including) the nearest branching ancestor.
 
     Concretely, a limb ``{"name": "foot_fl", "joints": [8, 9, 10]}`` is the chain shoulder -> knee ->
-    foot of a quadruped's front-left leg (the shoulder being where the chain meets the body).
+    foot of a quadruped's front-left leg (the shoulder being where the chain meets the body). With ``joints``
+    ((J, 3) positions of one pose), a fan (:data:`FAN_DEG`: a hand with its fingers) is part of the limb that
+    reaches it, which goes on along its farthest-reaching finger: a biped's arm is one limb from the shoulder,
+    not one per finger from the wrist.
     """
     parents = np.asarray(parents, dtype=np.int64)
     J = len(parents)
-    children = np.bincount(parents[parents >= 0], minlength=J)
+    children: list[list[int]] = [[] for _ in range(J)]
+    for j, p in enumerate(parents):
+        if p >= 0:
+            children[p].append(j)
+    if joints is not None:
+        fans = _fans(parents, children, np.asarray(joints, dtype=np.float64))
+        children = [[fans[j]] if j in fans else kids for j, kids in enumerate(children)]
     limbs = []
-    for leaf in np.flatnonzero(children == 0):
+    stack = [j for j in range(J) if parents[j] < 0]
+    leaves = []
+    while stack:  # the leaves the kept children reach, in joint order below
+        j = stack.pop()
+        if children[j]:
+            stack += children[j]
+        else:
+            leaves.append(j)
+    for leaf in sorted(leaves):
         chain = [int(leaf)]
         p = int(parents[leaf])
         while p >= 0:
             chain.append(p)
-            if children[p] > 1 or parents[p] < 0:
+            if len(children[p]) > 1 or parents[p] < 0:
                 break
             p = int(parents[p])
         if len(chain) >= 2:
@@ -177,7 +227,7 @@ def limb_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, gt_parents: np
                   tips: dict[int, np.ndarray] | None = None) -> dict:
     """Does every ground-truth limb have a learned joint chain along it?
 
-    A limb (see :func:`gt_limbs`) counts as covered when, in at least half of the frames, ``min_joints``
+    A limb (see :func:`gt_limbs`, with the first frame's joints telling a hand from a branching) counts as covered when, in at least half of the frames, ``min_joints``
     or more predicted joints lie within ``tol`` x the bbox diagonal of the limb's polyline (after the
     sequence alignment ``sim``). Returns per-limb median counts, ``tol_needed`` (the limb is covered at
     every ``tol`` above it; None with fewer than ``min_joints`` predicted joints) and the covered fraction.
@@ -192,7 +242,7 @@ def limb_coverage(pred_joints: np.ndarray, gt_joints: np.ndarray, gt_parents: np
     gj = np.asarray(gt_joints, dtype=np.float64)
     J = gj.shape[1]
     out = []
-    for limb in gt_limbs(gt_parents, names):
+    for limb in gt_limbs(gt_parents, names, gj[0]):
         chain = limb["joints"] if branch else limb["joints"][1:]
         tip = (tips or {}).get(limb["joints"][-1])
         points, chain = (gj, chain) if tip is None else (  # the end joint's tip as one more point of the polyline
@@ -231,7 +281,7 @@ def limb_identity(pred_verts: np.ndarray, weights: np.ndarray, gt_joints: np.nda
     gj = np.asarray(gt_joints, dtype=np.float64)
     dom = np.asarray(weights).argmax(1)
     k = max(1, min(int(k), pv.shape[1]))
-    limbs = gt_limbs(gt_parents, names)
+    limbs = gt_limbs(gt_parents, names, gj[0])
     wins = np.empty((len(limbs), T), dtype=np.int64)
     for i, limb in enumerate(limbs):
         tip = gj[:, limb["joints"][-1]]  # (T, 3)

@@ -161,3 +161,26 @@ def test_limb_identity_counts_the_frames_where_two_legs_swap():
     r2 = limb_identity(verts, W2, gt, parents)
     got2 = {o["limb"]: (o["bone"], o["swapped"], o["shared"]) for o in r2["limbs"]}
     assert got2 == {"joint_3": (0, 0.0, True), "joint_5": (0, 0.0, True), "joint_6": (2, 0.0, False)}
+
+
+def test_a_hand_is_part_of_its_arm():
+    """A joint whose child chains fan out within FAN_DEG (fingers) ends one limb; wider branchings start several."""
+    # 0 body; arm 0 -> 1 -> 2 (wrist) -> fingers 3 -> 4, 5 -> 6, 7 -> 8; leg 0 -> 9 -> 10; head 0 -> 11
+    parents = np.array([-1, 0, 1, 2, 3, 2, 5, 2, 7, 0, 9, 0])
+    pos = np.zeros((12, 3))
+    pos[1], pos[2] = [1, 0, 0], [2, 0, 0]
+    for k, (a, b) in enumerate([(3, 4), (5, 6), (7, 8)]):  # fingers 10 degrees apart, the middle one longest
+        ang = np.deg2rad(10.0 * (k - 1))
+        d = np.array([np.cos(ang), np.sin(ang), 0.0])
+        pos[a], pos[b] = pos[2] + 0.3 * d, pos[2] + (0.8 if k == 1 else 0.6) * d
+    pos[9], pos[10], pos[11] = [0, -1, 0], [0, -2, 0], [-0.5, 0.5, 0]
+    names = [f"j{i}" for i in range(12)]
+    assert sorted(tuple(l["joints"]) for l in gt_limbs(parents, names)) == [
+        (0, 9, 10), (0, 11), (2, 3, 4), (2, 5, 6), (2, 7, 8)]
+    assert sorted(tuple(l["joints"]) for l in gt_limbs(parents, names, pos)) == [(0, 1, 2, 5, 6), (0, 9, 10), (0, 11)]
+    spread = pos.copy()  # the same fingers 40 degrees apart are branches, not a hand
+    for k, (a, b) in enumerate([(3, 4), (5, 6), (7, 8)]):
+        ang = np.deg2rad(40.0 * (k - 1))
+        d = np.array([np.cos(ang), np.sin(ang), 0.0])
+        spread[a], spread[b] = pos[2] + 0.3 * d, pos[2] + 0.6 * d
+    assert len(gt_limbs(parents, names, spread)) == 5
