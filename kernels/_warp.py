@@ -74,9 +74,9 @@ _pool: ThreadPoolExecutor | None = None
 
 
 def frame_chunks(t: torch.Tensor, T: int) -> list[slice]:
-    """Ranges of the T frames to launch side by side. Warp runs a CPU launch on one thread and lets go of the GIL
-    while it runs, so on the CPU the frames are split into one range per torch thread (``torch.get_num_threads()``,
-    which OMP_NUM_THREADS sets); on CUDA a launch already fills the device: one range."""
+    """Ranges of T independent items (frames, queries) to launch side by side. Warp runs a CPU launch on one thread
+    and lets go of the GIL while it runs, so on the CPU the items are split into one range per torch thread
+    (``torch.get_num_threads()``, which OMP_NUM_THREADS sets); on CUDA a launch already fills the device: one range."""
     n = 1 if t.is_cuda else max(1, min(T, torch.get_num_threads()))
     edges = [round(i * T / n) for i in range(n + 1)]
     return [slice(edges[i], edges[i + 1]) for i in range(n)]

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from ._warp import check_float, check_shape, same_device, stream_of, to_wp, wp_device
+from ._warp import check_float, check_shape, frame_chunks, map_chunks, same_device, stream_of, to_wp, wp_device
 
 __all__ = ["nearest_point"]
 
@@ -74,12 +74,12 @@ def nearest_point(queries: torch.Tensor, query_frame: torch.Tensor, points: torc
     if fmin < 0 or fmax >= points.shape[0]:
         raise ValueError(f"{name}(): query_frame must lie in [0, {points.shape[0]}), got [{fmin}, {fmax}]")
     qf = query_frame.to(torch.int32).contiguous()
-    with stream_of(queries):
-        wp.launch(
-            nearest_point_kernel,
-            dim=queries.shape[0],
-            inputs=[to_wp(queries, wp.vec2), to_wp(qf), to_wp(points, wp.vec2)],
-            outputs=[to_wp(out)],
-            device=wp_device(queries),
-        )
+    q, pts = queries.contiguous(), to_wp(points, wp.vec2)
+
+    def launch(s: slice) -> None:  # on the CPU, ranges of queries side by side
+        with stream_of(queries):
+            wp.launch(nearest_point_kernel, dim=s.stop - s.start, inputs=[to_wp(q[s], wp.vec2), to_wp(qf[s]), pts],
+                      outputs=[to_wp(out[s])], device=wp_device(queries))
+
+    map_chunks(launch, frame_chunks(queries, queries.shape[0]))
     return out.long()

@@ -21,7 +21,7 @@ import math
 import torch
 import warp as wp
 
-from ._warp import check_float, check_shape, same_device, stream_of, to_wp, wp_device
+from ._warp import check_float, check_shape, frame_chunks, map_chunks, same_device, stream_of, to_wp, wp_device
 
 __all__ = ["mesh_edges", "dynamic_rigidity_loss", "arap_loss", "laplacian_loss", "symmetry_loss"]
 
@@ -298,16 +298,17 @@ class _UmbrellaFn(torch.autograd.Function):
 
 
 def _nearest(queries: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """``(N,)`` int64 index of the point nearest to each query (brute force Warp kernel, no gradient)."""
+    """``(N,)`` int64 index of the point nearest to each query (brute force Warp kernel, no gradient; on the CPU the
+    queries in ranges side by side)."""
     idx = torch.empty(queries.shape[0], dtype=torch.int32, device=queries.device)
-    with stream_of(queries):
-        wp.launch(
-            find_nearest_kernel,
-            dim=queries.shape[0],
-            inputs=[to_wp(queries.detach(), wp.vec3), to_wp(points.detach(), wp.vec3)],
-            outputs=[to_wp(idx)],
-            device=wp_device(queries),
-        )
+    q, pts = queries.detach().contiguous(), to_wp(points.detach(), wp.vec3)
+
+    def launch(s: slice) -> None:
+        with stream_of(queries):
+            wp.launch(find_nearest_kernel, dim=s.stop - s.start, inputs=[to_wp(q[s], wp.vec3), pts],
+                      outputs=[to_wp(idx[s])], device=wp_device(queries))
+
+    map_chunks(launch, frame_chunks(queries, queries.shape[0]))
     return idx.long()
 
 
