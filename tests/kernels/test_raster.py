@@ -348,3 +348,32 @@ def test_rasterize_and_interpolate_errors():
 def test_mixed_devices_error():
     with pytest.raises(ValueError, match="all inputs must be on one device"):
         soft_silhouette(torch.rand(1, 3, 3).cuda() + 1, torch.tensor([[0, 1, 2]]), torch.eye(3), (4, 5))
+
+
+def test_frame_ranges_side_by_side_change_no_bit():
+    """On the CPU the raster ops launch their frames in ranges, one per torch thread: the result and the gradients
+    are the same to the last bit as one launch over every frame."""
+    verts, faces, K, size = _soup(T=5, F=12, seed=9)
+    up = torch.randn(5, *size)
+    upc = torch.randn(5, *size, 2)
+    attr = torch.randn(verts.shape[1], 2)
+
+    def run():
+        v = verts.clone().requires_grad_()
+        a = attr.clone().requires_grad_()
+        sil = soft_silhouette(v, faces, K, size, sigma=1.5)
+        fi, bary, depth = rasterize(v, faces, K, size)
+        col = interpolate(a, faces, fi, bary)
+        ((sil * up).sum() + (depth * up).sum() + (col * upc).sum()).backward()
+        return [sil, fi, bary, depth, col, v.grad, a.grad]
+
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = run()
+        torch.set_num_threads(3)
+        ranges = run()
+    finally:
+        torch.set_num_threads(threads)
+    for x, y in zip(one, ranges):
+        assert torch.equal(x, y)
