@@ -433,9 +433,10 @@ def rasterize(verts, faces, K, image_size, tile_size: int = 4, near: float = 1e-
     _check_positive(op, "tile_size", tile_size, integer=True)
     _check_positive(op, "near", near)
     xy, z, front = _project(verts, faces32, K, near)
+    z = z.contiguous()
     face_index = torch.empty((T, H, W), dtype=torch.int32, device=verts.device)
     F = faces32.shape[0]
-    xy_d = xy.detach()
+    xy_d, z_d = xy.detach(), z.detach()
 
     def raster(s: slice) -> None:  # the frames of s: visible face per pixel
         Tc = s.stop - s.start
@@ -452,8 +453,6 @@ def rasterize(verts, faces, K, image_size, tile_size: int = 4, near: float = 1e-
                               to_wp(bins.faces), int(tile_size), bins.ntx, bins.bins_per_frame],
                       outputs=[to_wp(face_index[s])])
 
-    z = z.contiguous()
-    z_d = z.detach()
     with torch.no_grad():
         map_chunks(raster, frame_chunks(verts, T))
     bary, depth = _BarycentricsFn.apply(xy, z, faces32, face_index)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .raster_forward import cross2_func, outside_box_func, screen_edges_func, triangle_sq_dist_func
+from .raster_forward import outside_box_func, perspective_barycentrics_func, triangle_sq_dist_func
 
 wp.set_module_options({"enable_backward": False})
 
@@ -164,11 +164,8 @@ def barycentrics_grad_kernel(
     b = xy[t, i[1]]
     c = xy[t, i[2]]
     p = wp.vec2(float(cpix), float(r))
-    area2 = cross2_func(b - a, c - a)
-    e = screen_edges_func(p, a, b, c)
     zv = wp.vec3(z[t, i[0]], z[t, i[1]], z[t, i[2]])
-    lam = e / area2
-    q = wp.vec3(lam[0] / zv[0], lam[1] / zv[1], lam[2] / zv[2])
+    area2, lam, q = perspective_barycentrics_func(p, a, b, c, zv)
     s = q[0] + q[1] + q[2]
     bw = q / s
     gb = g_bary[t, r, cpix]

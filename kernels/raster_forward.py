@@ -286,6 +286,15 @@ def screen_edges_func(p: wp.vec2, a: wp.vec2, b: wp.vec2, c: wp.vec2):
     return wp.vec3(cross2_func(c - b, p - b), cross2_func(a - c, p - c), cross2_func(b - a, p - a))
 
 
+@wp.func
+def perspective_barycentrics_func(p: wp.vec2, a: wp.vec2, b: wp.vec2, c: wp.vec2, z: wp.vec3):
+    """At pixel p of triangle abc with camera depths z: twice its signed area, the screen barycentrics
+    l_i = e_i / area2 and q_i = l_i / z_i (the perspective-correct ones are q / sum q, the depth 1 / sum q)."""
+    area2 = cross2_func(b - a, c - a)
+    lam = screen_edges_func(p, a, b, c) / area2
+    return area2, lam, wp.vec3(lam[0] / z[0], lam[1] / z[1], lam[2] / z[2])
+
+
 @wp.kernel
 def barycentrics_kernel(
     xy: wp.array2d(dtype=wp.vec2),
@@ -305,12 +314,8 @@ def barycentrics_kernel(
         depth[t, r, c] = 0.0
         return
     i = faces[f]
-    a = xy[t, i[0]]
-    b = xy[t, i[1]]
-    cc = xy[t, i[2]]
-    area2 = cross2_func(b - a, cc - a)
-    e = screen_edges_func(wp.vec2(float(c), float(r)), a, b, cc)
-    q = wp.vec3(e[0] / area2 / z[t, i[0]], e[1] / area2 / z[t, i[1]], e[2] / area2 / z[t, i[2]])
+    _area2, _lam, q = perspective_barycentrics_func(wp.vec2(float(c), float(r)), xy[t, i[0]], xy[t, i[1]], xy[t, i[2]],
+                                                    wp.vec3(z[t, i[0]], z[t, i[1]], z[t, i[2]]))
     s = q[0] + q[1] + q[2]
     bary[t, r, c] = q / s
     depth[t, r, c] = 1.0 / s
