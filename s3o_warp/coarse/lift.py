@@ -3,7 +3,8 @@
 Object frame (all outputs here): the canonical camera's axes (OpenCV: x right, y down, z forward),
 origin at the body centre back-projected at the given depth, units of the depth (metres by
 convention). The root transform of the canonical frame is therefore ``[I | C]`` with C the body
-centre in camera coordinates, and the symmetry plane is z = 0 (normal (0, 0, 1), offset 0).
+centre in camera coordinates. The symmetry plane goes through the origin: z = 0 (normal (0, 0, 1)) for a
+side view, x = 0 (normal (1, 0, 0)) for a front view (:func:`s3o_warp.coarse.skeleton2d.front_view`).
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ from s3o_warp.coarse.skeleton2d import (
     ENDPOINT,
     CoarseSettings,
     Skeleton2D,
+    front_view,
+    mirror_pairs,
     symmetric_pairs,
 )
 from s3o_warp.errors import InputError
@@ -41,15 +44,16 @@ class Coarse3D:
             frame; column 0 is the long axis (along the edge). Concretely, a point p is inside
             ellipsoid e iff ``|| (rotations[e].T @ (p - centres[e])) / radii[e] || <= 1``.
         radii: (E, 3) float64 semi-axes along those columns (long, short, short).
-        sym_pairs: (S, 2) int64 edge indices of symmetric limb pairs; the end node of
-            ``sym_pairs[s, 0]`` sits at z = -dz (nearer the camera), that of ``sym_pairs[s, 1]`` at +dz.
-        symmetry_plane: (normal (3,) float64, offset float): points p with normal . p = offset.
+        sym_pairs: (S, 2) int64 edge indices of symmetric limb pairs, the first on the negative side of the
+            symmetry plane: in a side view the end node of ``sym_pairs[s, 0]`` sits at z = -dz (nearer the
+            camera), that of ``sym_pairs[s, 1]`` at +dz; in a front view the first is the image's left one.
+        symmetry_plane: (normal (3,) float64, offset float): points p with normal . p = offset; offset 0.
         root_transform: (4, 4) float64 object-to-camera transform of the canonical frame, [I | C].
         root: root node index (the torso junction; -1 when the skeleton has no junction).
         root_edge: index of the edge that becomes the root bone (the widest edge at the root node).
         K: (3, 3) float64 intrinsics of the canonical frame (pixels).
         depth: the depth of the body centre along the camera's z axis.
-        dz: the symmetric limbs' z offset (object-frame units).
+        dz: the symmetric limbs' z offset (object-frame units; 0 in a front view, whose pairs are apart in x).
         edge_dz: (E,) float64 z shift of each edge's ellipsoid at its junction end (0 off the pairs; dz with
             girdles, else at most dz and ``junction_dz_fraction`` x the junction's radius, so the limb stays
             attached).
@@ -158,6 +162,11 @@ def lift_to_3d(skel: Skeleton2D, K, depth: float, settings: CoarseSettings | Non
     Symmetric limbs: two leaf edges (ending in endpoints) of the same junction with length ratio <=
     ``sym_length_ratio``, radius ratio <= ``sym_radius_ratio`` and 2D angle <= ``sym_max_angle_deg``.
 
+    A front view (:func:`~s3o_warp.coarse.skeleton2d.front_view`: a mirror pair spread to both sides, a
+    person's arms held out) is lifted differently: its pairs are the :func:`~s3o_warp.coarse.skeleton2d.mirror_pairs`,
+    already apart in the image, so every node stays at ``depth`` (no dz, no girdle), and the symmetry plane
+    is the vertical plane x = 0 through the body centre and the camera, not the image plane.
+
     Ellipsoid e: centre = midpoint of its 3D edge, long axis along the edge with semi-axis
     half the 3D length + ``end_pad`` x r (Hi-LASSIE's 1 + 2 r / L scale), two short semi-axes
     r = the edge's mean 2D radius x depth / f, f = (fx + fy) / 2.
@@ -195,11 +204,13 @@ def lift_to_3d(skel: Skeleton2D, K, depth: float, settings: CoarseSettings | Non
         centre_px = np.array([np.interp(acc[-1] / 2, acc, p[:, 0]), np.interp(acc[-1] / 2, acc, p[:, 1])])
         torso_r_px = float(skel.edge_radius.max())
     C = depth * (Kinv @ np.array([centre_px[0], centre_px[1], 1.0]))
-    dz = s.dz_fraction * torso_r_px * depth / f
-
-    pairs = symmetric_pairs(skel, s)
+    front = front_view(skel, s)
+    if front:  # the pairs are apart in the image already: nothing moves off the plane x = 0
+        pairs, dz, normal = mirror_pairs(skel, s), 0.0, np.array([1.0, 0.0, 0.0])
+    else:
+        pairs, dz, normal = symmetric_pairs(skel, s), s.dz_fraction * torso_r_px * depth / f, np.array([0.0, 0.0, 1.0])
     node_z = np.zeros(len(skel.nodes))
-    for e1, e2 in pairs:
+    for e1, e2 in ([] if front else pairs):
         for e, sign in ((e1, -1.0), (e2, 1.0)):
             u, v = skel.edges[e]
             leaf = v if skel.node_type[v] == ENDPOINT else u
@@ -214,7 +225,7 @@ def lift_to_3d(skel: Skeleton2D, K, depth: float, settings: CoarseSettings | Non
     # junction's own radius, so the limb stays attached)
     edge_dz = np.zeros(E)
     girdle_c, girdle_r = [], []
-    for e1, e2 in pairs:
+    for e1, e2 in ([] if front else pairs):
         j = int(np.intersect1d(skel.edges[e1], skel.edges[e2])[0])
         r_j = skel.node_radius[j] * depth / f
         shift = dz if s.girdles else min(dz, s.junction_dz_fraction * r_j)
@@ -244,10 +255,11 @@ def lift_to_3d(skel: Skeleton2D, K, depth: float, settings: CoarseSettings | Non
         root_edge = int(np.argmax(skel.edge_radius))
     T = np.eye(4)
     T[:3, 3] = C
-    log.info("lift_to_3d: %d nodes, %d ellipsoids, %d symmetric pairs, dz %.4g", len(nodes), E, len(pairs), dz)
+    log.info("lift_to_3d: %d nodes, %d ellipsoids, %d symmetric pairs, %s", len(nodes), E, len(pairs),
+             "front view (pairs mirrored about x = 0)" if front else f"dz {dz:.4g}")
     return Coarse3D(nodes=nodes, edges=skel.edges.copy(), centres=centres, rotations=rotations, radii=radii,
                     sym_pairs=np.array(pairs, np.int64).reshape(-1, 2),
-                    symmetry_plane=(np.array([0.0, 0.0, 1.0]), 0.0), root_transform=T, root=int(skel.root),
+                    symmetry_plane=(normal, 0.0), root_transform=T, root=int(skel.root),
                     root_edge=root_edge, K=K, depth=float(depth), dz=float(dz), edge_dz=edge_dz,
                     girdle_centres=np.array(girdle_c, np.float64).reshape(-1, 3),
                     girdle_radii=np.array(girdle_r, np.float64).reshape(-1, 3))

@@ -133,7 +133,8 @@ def _limb_pairs(lifted, bones) -> tuple:
             i = 0 if int(lifted.edges[e][0]) == n else 1
             axes.append((ends[e, i].copy(), ends[e, 1 - i].copy()))
         out.append(LimbPair(a=bone_of_edge[int(e1)], b=bone_of_edge[int(e2)], top_a=axes[0][0], end_a=axes[0][1],
-                            top_b=axes[1][0], end_b=axes[1][1]))
+                            top_b=axes[1][0], end_b=axes[1][1],
+                            normal=tuple(float(x) for x in lifted.symmetry_plane[0])))
     return tuple(out)
 
 

@@ -514,11 +514,16 @@ def skeleton_2d(mask, settings: CoarseSettings | None = None, *, prune_factor: f
     return sk
 
 
-def symmetric_pairs(skel: Skeleton2D, s: CoarseSettings) -> list[tuple[int, int]]:
-    """Leaf-edge pairs at one junction with similar length, radius and 2D direction (greedy, best first)."""
-    pairs = []
+MIRROR_TOL_DEG = 30.0
+"""Two leaf limbs of one junction are mirror images (:func:`mirror_pairs`) when one's 2D direction, reflected about
+the image's vertical axis, is within this many degrees of the other's."""
+
+
+def _leaf_pairs(skel: Skeleton2D, s: CoarseSettings):
+    """Every pair of leaf edges (ending in an endpoint) at one junction whose lengths and mean radii are within
+    ``sym_length_ratio`` and ``sym_radius_ratio``: ``(junction, e1, e2, d1, d2, lr, rr)``, d the unit 2D directions
+    from the junction, lr / rr the length and radius ratios."""
     deg = skel.degree()
-    cos_max = np.cos(np.deg2rad(s.sym_max_angle_deg))
     for j in skel.junctions:
         leaves = []
         for e, (u, v) in enumerate(skel.edges):
@@ -527,7 +532,6 @@ def symmetric_pairs(skel: Skeleton2D, s: CoarseSettings) -> list[tuple[int, int]
                 if o != j and skel.node_type[o] == ENDPOINT and deg[o] == 1:
                     d = skel.nodes[o] - skel.nodes[j]
                     leaves.append((e, o, d / max(np.linalg.norm(d), 1e-9)))
-        cands = []
         for i in range(len(leaves)):
             for k in range(i + 1, len(leaves)):
                 (e1, _, d1), (e2, _, d2) = leaves[i], leaves[k]
@@ -535,16 +539,65 @@ def symmetric_pairs(skel: Skeleton2D, s: CoarseSettings) -> list[tuple[int, int]
                     min(skel.edge_length[e1], skel.edge_length[e2]), 1e-9)
                 rr = max(skel.edge_radius[e1], skel.edge_radius[e2]) / max(
                     min(skel.edge_radius[e1], skel.edge_radius[e2]), 1e-9)
-                cos = float(np.dot(d1, d2))
-                if lr <= s.sym_length_ratio and rr <= s.sym_radius_ratio and cos >= cos_max:
-                    score = abs(np.log(lr)) + abs(np.log(rr)) + np.arccos(np.clip(cos, -1, 1)) / np.pi
-                    cands.append((score, e1, e2))
-        used: set[int] = set()
-        for _, e1, e2 in sorted(cands):
-            if e1 not in used and e2 not in used:
-                used |= {e1, e2}
-                pairs.append((min(e1, e2), max(e1, e2)))
+                if lr <= s.sym_length_ratio and rr <= s.sym_radius_ratio:
+                    yield j, e1, e2, d1, d2, lr, rr
+
+
+def _greedy(cands: list) -> list[tuple[int, int]]:
+    """Best first (lowest score), each edge in at most one pair: ``cands`` of (score, e1, e2)."""
+    used: set[int] = set()
+    pairs = []
+    for _, e1, e2 in sorted(cands):
+        if e1 not in used and e2 not in used:
+            used |= {e1, e2}
+            pairs.append((min(e1, e2), max(e1, e2)))
     return pairs
+
+
+def symmetric_pairs(skel: Skeleton2D, s: CoarseSettings) -> list[tuple[int, int]]:
+    """Leaf-edge pairs at one junction with similar length, radius and 2D direction (greedy, best first)."""
+    cos_max = np.cos(np.deg2rad(s.sym_max_angle_deg))
+    pairs = []
+    for j in skel.junctions:  # per junction, as the pairs of one junction compete only among themselves
+        cands = []
+        for jj, e1, e2, d1, d2, lr, rr in _leaf_pairs(skel, s):
+            cos = float(np.dot(d1, d2))
+            if jj == j and cos >= cos_max:
+                cands.append((abs(np.log(lr)) + abs(np.log(rr)) + np.arccos(np.clip(cos, -1, 1)) / np.pi, e1, e2))
+        pairs += _greedy(cands)
+    return pairs
+
+
+def mirror_pairs(skel: Skeleton2D, s: CoarseSettings) -> list[tuple[int, int]]:
+    """Leaf-edge pairs at one junction with similar length and radius whose 2D directions are mirror images about
+    the image's vertical axis (within :data:`MIRROR_TOL_DEG`), greedy best first; each pair ``(left, right)``: the
+    first ends nearer the image's left."""
+    pairs = []
+    for j in skel.junctions:
+        cands = []
+        for jj, e1, e2, d1, d2, lr, rr in _leaf_pairs(skel, s):
+            err = np.arccos(np.clip(float(d1[0] * -d2[0] + d1[1] * d2[1]), -1, 1))
+            if jj == j and err <= np.deg2rad(MIRROR_TOL_DEG):
+                cands.append((abs(np.log(lr)) + abs(np.log(rr)) + err / np.pi, e1, e2))
+        for e1, e2 in _greedy(cands):
+            x = [skel.nodes[skel.edges[e][0] if skel.edges[e][1] == j else skel.edges[e][1]][0] for e in (e1, e2)]
+            pairs.append((e1, e2) if x[0] <= x[1] else (e2, e1))
+    return pairs
+
+
+def front_view(skel: Skeleton2D, s: CoarseSettings, pairs: list[tuple[int, int]] | None = None) -> bool:
+    """Whether the frame shows the body from the front (or the back): one of its :func:`mirror_pairs` spreads to
+    both sides of its junction, more than 90 degrees apart (a person's arms held out). A side view's paired limbs
+    hang the same way (legs, even mid-stride, are less than 75 degrees apart); a front view with arms down cannot be
+    told from one and is lifted as a side view."""
+    pairs = mirror_pairs(skel, s) if pairs is None else pairs
+    for e1, e2 in pairs:
+        j = int(np.intersect1d(skel.edges[e1], skel.edges[e2])[0])
+        d = [skel.nodes[skel.edges[e][0] if skel.edges[e][1] == j else skel.edges[e][1]] - skel.nodes[j]
+             for e in (e1, e2)]
+        if d[0][0] * d[1][0] < 0 and float(np.dot(d[0], d[1])) < 0:
+            return True
+    return False
 
 
 def _leg_pair_ends(skel: Skeleton2D, s: CoarseSettings, pairs: list[tuple[int, int]] | None = None) -> list:

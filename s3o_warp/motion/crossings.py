@@ -27,7 +27,6 @@ from s3o_warp.geometry import axis_angle_to_matrix, matrix_to_axis_angle, projec
 
 log = logging.getLogger(__name__)
 
-_MIRROR = np.diag([1.0, 1.0, -1.0])  # the lift's symmetry plane is z = 0 in the object frame
 
 MAX_GAP = 0.8
 """Two limbs' paths may be exchanged only where their ends are at most this x the limbs' mean projected length
@@ -41,7 +40,8 @@ RATIO = 0.75
 @dataclass(frozen=True)
 class LimbPair:
     """Two symmetric limbs, one bone each: bone indices and their rest axes (top at the shared junction,
-    then the far end), object frame, the first on the z < 0 side."""
+    then the far end), object frame, the first on the negative side of the lift's symmetry plane, whose unit
+    ``normal`` it keeps (the plane goes through the origin: z = 0 in a side view, x = 0 in a front view)."""
 
     a: int
     b: int
@@ -49,6 +49,13 @@ class LimbPair:
     end_a: np.ndarray
     top_b: np.ndarray
     end_b: np.ndarray
+    normal: tuple = (0.0, 0.0, 1.0)
+
+    @property
+    def mirror(self) -> np.ndarray:
+        """(3, 3) the reflection through the symmetry plane, I - 2 n n^T."""
+        n = np.asarray(self.normal, np.float64)
+        return np.eye(3) - 2.0 * np.outer(n, n) / float(n @ n)
 
 
 def exchange_costs(pa: np.ndarray, pb: np.ndarray, window: int = 2) -> tuple[np.ndarray, np.ndarray]:
@@ -112,7 +119,8 @@ def _rot_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return Rotation.align_vectors(v[None], u[None])[0].as_matrix()  # one pair: the shortest arc (scipy >= 1.11)
 
 
-def exchanged_motion(A_o: np.ndarray, b_o: np.ndarray, top_self, end_self, top_other, end_other, centre_self):
+def exchanged_motion(A_o: np.ndarray, b_o: np.ndarray, top_self, end_self, top_other, end_other, centre_self,
+                     mirror: np.ndarray | None = None):
     """The motion of one limb that mirrors its partner's: ``(R, t)`` per frame of the rotation-about-centre
     parametrisation (``x -> R (x - c) + c + t``) so that the limb's rest axis lands where the partner's
     posed axis is, reflected through the symmetry plane.
@@ -120,8 +128,10 @@ def exchanged_motion(A_o: np.ndarray, b_o: np.ndarray, top_self, end_self, top_o
     ``A_o`` ``(T, 3, 3)``, ``b_o`` ``(T, 3)``: the partner's posed map ``y -> A_o y + b_o``. Corresponding
     points: the partner's rest axis is matched to this limb's by its top and direction (one rigid map),
     so the limb keeps its own rest shape and side.
+    ``mirror`` ``(3, 3)``: the reflection through the symmetry plane (:attr:`LimbPair.mirror`; the side view's
+    z = 0 when None).
     """
-    S = _MIRROR
+    S = np.diag([1.0, 1.0, -1.0]) if mirror is None else np.asarray(mirror, np.float64)
     u_self = np.asarray(end_self, np.float64) - np.asarray(top_self, np.float64)
     u_oth = S @ (np.asarray(end_other, np.float64) - np.asarray(top_other, np.float64))
     H = _rot_between(u_self, u_oth)  # rest: this limb's axis onto the mirrored partner's
@@ -171,7 +181,7 @@ def resolve_crossings(bone_aa: torch.Tensor, bone_t: torch.Tensor, centres: torc
         for me, oth, top_m, end_m, top_o, end_o in ((pr.a, pr.b, pr.top_a, pr.end_a, pr.top_b, pr.end_b),
                                                     (pr.b, pr.a, pr.top_b, pr.end_b, pr.top_a, pr.end_a)):
             A_o, b_o = maps[oth][0][idx], maps[oth][1][idx]
-            R, t = exchanged_motion(A_o, b_o, top_m, end_m, top_o, end_o, c_all[me])
+            R, t = exchanged_motion(A_o, b_o, top_m, end_m, top_o, end_o, c_all[me], pr.mirror)
             ii = torch.as_tensor(idx, device=bone_aa.device)
             bone_aa.data[ii, me] = matrix_to_axis_angle(torch.as_tensor(R)).to(bone_aa)
             bone_t.data[ii, me] = torch.as_tensor(t).to(bone_t)

@@ -21,9 +21,11 @@ from s3o_warp.coarse.skeleton2d import (
     JUNCTION,
     CoarseSettings,
     canonical_frame,
+    front_view,
     leg_pairs,
     leg_stride,
     part_masks,
+    mirror_pairs,
     skeleton_2d,
     symmetric_pairs,
 )
@@ -335,6 +337,63 @@ def test_lift_reprojects_nodes_and_places_symmetric_legs(lifted):
     np.testing.assert_array_equal(T[:3, :3], np.eye(3))
     np.testing.assert_allclose(T[:3, 3], 3.0 * np.linalg.solve(K, [*sk.nodes[sk.root], 1.0]))
     np.testing.assert_allclose(c.nodes[sk.root], 0.0, atol=1e-12)
+
+
+HANDS = [(40, 92), (280, 92)]
+PERSON_FEET = [(128, 228), (192, 228)]
+
+
+def person(arms_out: bool = True, h: int = 240, w: int = 320) -> np.ndarray:
+    """A person seen from the front: head, torso, arms held out (or hanging), legs apart."""
+    m = np.zeros((h, w), np.uint8)
+    cv2.ellipse(m, (160, 110), (28, 50), 0, 0, 360, 1, -1)
+    cv2.circle(m, (160, 38), 20, 1, -1)
+    for (hx, hy), sx in zip(HANDS, (136, 184)):
+        cv2.line(m, (sx, 84), (hx, hy) if arms_out else (sx - 60 * (sx < 160) + 60 * (sx > 160), 190), 1, 12)
+    for fx, fy in PERSON_FEET:
+        cv2.line(m, (160 + (fx - 160) // 4, 150), (fx, fy), 1, 16)
+    return m.astype(bool)
+
+
+def _leaf_end(sk, e) -> int:
+    u, v = (int(x) for x in sk.edges[e])
+    return v if sk.node_type[v] == ENDPOINT else u
+
+
+def test_front_view_pairs_arms_and_legs_about_the_vertical():
+    m = person()
+    sk = skeleton_2d(m)
+    s = CoarseSettings()
+    pairs = mirror_pairs(sk, s)
+    ends = [[sk.nodes[_leaf_end(sk, e)] for e in p] for p in pairs]
+    hands = [[np.linalg.norm(e - np.array(h)) for e, h in zip(pe, HANDS)] for pe in ends]
+    feet = [[np.linalg.norm(e - np.array(f)) for e, f in zip(pe, PERSON_FEET)] for pe in ends]
+    assert len(pairs) == 2
+    assert any(max(d) < 6 for d in hands) and any(max(d) < 8 for d in feet)  # each pair left first
+    assert front_view(sk, s)
+    # mirrored left-right: the same pairs, the left one still first
+    sk2 = skeleton_2d(m[:, ::-1])
+    assert len(mirror_pairs(sk2, s)) == 2 and front_view(sk2, s)
+    # arms hanging: a front view that cannot be told from a side view's legs; the quadruped's pairs hang the same way
+    assert not front_view(skeleton_2d(person(arms_out=False)), s)
+    assert not front_view(skeleton_2d(quadruped()), s)
+
+
+def test_lift_of_a_front_view_mirrors_about_the_vertical_plane():
+    m = person()
+    sk = skeleton_2d(m)
+    c = lift_to_3d(sk, K, 3.0)
+    np.testing.assert_allclose(c.project(c.nodes), sk.nodes, atol=1e-4, rtol=0)
+    np.testing.assert_allclose(c.nodes[:, 2], 0.0, atol=1e-12)  # the limbs are apart in x: nothing leaves z = 0
+    assert c.dz == 0 and len(c.girdle_centres) == 0 and not np.any(c.edge_dz)
+    normal, offset = c.symmetry_plane
+    np.testing.assert_array_equal(normal, [1, 0, 0])
+    assert offset == 0
+    assert [tuple(p) for p in c.sym_pairs] == mirror_pairs(sk, CoarseSettings())
+    for e1, e2 in c.sym_pairs:  # left of the plane first, mirror images within a few pixels' worth
+        a, b = c.nodes[_leaf_end(sk, e1)], c.nodes[_leaf_end(sk, e2)]
+        assert a[0] < 0 < b[0]
+        np.testing.assert_allclose([-a[0], a[1]], b[:2], atol=0.1 * np.linalg.norm(b[:2]))
 
 
 def test_lift_ellipsoids_follow_edges(lifted):

@@ -59,14 +59,20 @@ def _rand_rot(rng, n):
     return axis_angle_to_matrix(torch.as_tensor(rng.normal(size=(n, 3)) * 0.6)).numpy()
 
 
-def test_exchanged_motion_mirrors_partner():
+@pytest.mark.parametrize("normal", [(0.0, 0.0, 1.0), (1.0, 0.0, 0.0)])
+def test_exchanged_motion_mirrors_partner(normal):
+    """Through the side view's plane z = 0 (the default) and a front view's x = 0 (``LimbPair.mirror``)."""
+    pair = LimbPair(0, 1, *(np.zeros(3),) * 4, normal=normal)
+    S = pair.mirror
+    np.testing.assert_allclose(S, np.eye(3) - 2 * np.outer(normal, normal))
+    mirror = None if normal[2] else S
     rng = np.random.default_rng(0)
     T = 5
     top_a, end_a = np.array([0.1, 0.0, -0.1]), np.array([0.3, 0.5, -0.1])
     top_b, end_b = np.array([0.1, 0.0, 0.1]), np.array([-0.2, 0.55, 0.1])  # another rest angle and length
     A_b, b_b = _rand_rot(rng, T), rng.normal(size=(T, 3))
     c_a = np.array([0.2, 0.25, -0.1])
-    R, t = exchanged_motion(A_b, b_b, top_a, end_a, top_b, end_b, c_a)
+    R, t = exchanged_motion(A_b, b_b, top_a, end_a, top_b, end_b, c_a, mirror)
     assert np.allclose(np.linalg.det(R), 1) and np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-12)
 
     def posed_a(x):
@@ -80,7 +86,7 @@ def test_exchanged_motion_mirrors_partner():
     cos = (d_a * d_b).sum(1) / np.linalg.norm(d_a, axis=1) / np.linalg.norm(d_b, axis=1)
     assert np.allclose(cos, 1)
     # mirror-image rests: the whole limb is the partner's reflection
-    R2, t2 = exchanged_motion(A_b, b_b, S @ top_b, S @ end_b, top_b, end_b, c_a)
+    R2, t2 = exchanged_motion(A_b, b_b, S @ top_b, S @ end_b, top_b, end_b, c_a, mirror)
     x = rng.normal(size=3)
     got = np.einsum("tij,j->ti", R2, x - c_a) + c_a + t2
     assert np.allclose(got, (np.einsum("tij,j->ti", A_b, S @ x) + b_b) @ S.T)
