@@ -109,10 +109,15 @@ def surface_under_keypoints(face_index: np.ndarray, bary: np.ndarray, xy: np.nda
     return face_index[r, c].astype(np.int64), bary[r, c].astype(np.float64), np.stack([c, r], axis=1).astype(np.int64)
 
 
+GAP_BANDS = (1, 4, 12, 24)
+"""PCK-T is also counted by how many video frames apart the two frames of a pair are: 1-3, 4-11, 12-23, 24 and more.
+A fit whose surface and pose are right only locally scores well on near pairs and falls off with the gap."""
+
+
 def pck_transfer(keypoints: np.ndarray, verts: np.ndarray, faces: np.ndarray, K: np.ndarray,
                  kp_face: np.ndarray, kp_bary: np.ndarray, mask_area: np.ndarray, alpha: float = 0.2,
                  threshold_frame: Literal["reference", "target"] = "reference", chunk_elements: int = 2_000_000,
-                 pair_limit: int = 5_000_000) -> dict:
+                 pair_limit: int = 5_000_000, frame_index: np.ndarray | None = None) -> dict:
     """PCK-T over every ordered pair of annotated frames (vectorised in chunks of reference frames).
 
     Args:
@@ -127,10 +132,12 @@ def pck_transfer(keypoints: np.ndarray, verts: np.ndarray, faces: np.ndarray, K:
         alpha: correctness threshold as a fraction of sqrt(mask area).
         threshold_frame: whose mask area sets the threshold: ``"reference"`` (frame i, as LASR and
             ViSER's code do) or ``"target"`` (frame j).
+        frame_index: int (A,) the video frame of each annotated frame (default 0..A-1), for ``by_gap``.
 
     Returns:
         dict: ``pck`` (percent, NaN when nothing was scored), ``correct``, ``total`` (pairs x
-        keypoints scored), ``pairs`` (ordered frame pairs), ``per_keypoint_correct`` and
+        keypoints scored), ``pairs`` (ordered frame pairs), ``by_gap`` (per band of :data:`GAP_BANDS`:
+        ``frames`` "lo-hi" or "lo+", ``correct``, ``total``, ``pck``), ``per_keypoint_correct`` and
         ``per_keypoint_total`` (P,) int arrays, ``pred`` float64 (A, A, P, 2) transferred positions
         ``pred[i, j]`` of frame i's keypoints in frame j, and ``valid`` bool (A, A, P) (both None when
         A * A * P > ``pair_limit``: long fully annotated videos are scored in O(A P) memory).
@@ -154,6 +161,10 @@ def pck_transfer(keypoints: np.ndarray, verts: np.ndarray, faces: np.ndarray, K:
     correct_n, total = 0, 0
     kp_correct = np.zeros(P, np.int64)
     kp_total = np.zeros(P, np.int64)
+    fidx = np.arange(A) if frame_index is None else np.asarray(frame_index, np.int64)
+    band = np.digitize(np.abs(fidx[:, None] - fidx[None, :]), GAP_BANDS) - 1  # (A, A), -1 on the diagonal
+    gap_correct = np.zeros(len(GAP_BANDS), np.int64)
+    gap_total = np.zeros(len(GAP_BANDS), np.int64)
     step = max(1, int(chunk_elements // max(1, A * P)))  # reference frames per chunk: memory O(A P), not O(A^2 P)
     for i0 in range(0, A, step):
         sl = slice(i0, min(A, i0 + step))
@@ -173,6 +184,9 @@ def pck_transfer(keypoints: np.ndarray, verts: np.ndarray, faces: np.ndarray, K:
         total += int(valid.sum())
         kp_correct += correct.sum(axis=(0, 1))
         kp_total += valid.sum(axis=(0, 1))
+        bi = np.broadcast_to(band[sl][..., None], valid.shape)
+        gap_correct += np.bincount(bi[correct], minlength=len(GAP_BANDS))
+        gap_total += np.bincount(bi[valid], minlength=len(GAP_BANDS))
         if keep_pairs:
             pred_all[sl], valid_all[sl] = pred, valid
     return {
@@ -180,6 +194,9 @@ def pck_transfer(keypoints: np.ndarray, verts: np.ndarray, faces: np.ndarray, K:
         "correct": correct_n,
         "total": total,
         "pairs": A * (A - 1),
+        "by_gap": [{"frames": f"{lo}-{hi - 1}" if hi else f"{lo}+", "correct": int(c), "total": int(t),
+                    "pck": 100.0 * c / t if t else None}
+                   for lo, hi, c, t in zip(GAP_BANDS, (*GAP_BANDS[1:], None), gap_correct, gap_total)],
         "per_keypoint_correct": kp_correct,
         "per_keypoint_total": kp_total,
         "pred": pred_all,

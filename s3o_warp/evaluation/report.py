@@ -174,10 +174,10 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
             kp_arr = np.stack([kps.frames[pred.frame_names[t]] for t in ann])
             area = gt_masks[ann_a].reshape(len(ann), -1).sum(1)
             r = pck_transfer(kp_arr, pred.verts_cam[ann_a], pred.faces, pred.K[ann_a], kp_face, kp_bary, area,
-                             alpha, threshold_frame)
+                             alpha, threshold_frame, frame_index=ann_a)
             result["pck_t"] = {
                 "pck": r["pck"], "correct": r["correct"], "total": r["total"], "pairs": r["pairs"],
-                "frames": len(ann), "alpha": alpha, "threshold_frame": threshold_frame,
+                "frames": len(ann), "alpha": alpha, "threshold_frame": threshold_frame, "by_gap": r["by_gap"],
                 "per_keypoint": {n: {"pck": (100.0 * c / t if t else None), "correct": int(c), "total": int(t)}
                                  for n, c, t in zip(kps.names, r["per_keypoint_correct"], r["per_keypoint_total"])},
             }
@@ -273,6 +273,9 @@ def format_table(metrics: dict) -> str:
         m = metrics["pck_t"]
         rows.append((f"PCK-T@{m['alpha']:g} (%)", f(m["pck"], ".2f"),
                      f"{m['correct']}/{m['total']} keypoints, {m['pairs']} pairs of {m['frames']} frames"))
+        if m.get("by_gap"):
+            rows.append(("PCK-T by frame gap (%)", " / ".join(f(g["pck"], ".1f") for g in m["by_gap"]),
+                         "pairs " + ", ".join(f"{g['frames']} ({g['total']})" for g in m["by_gap"]) + " frames apart"))
     if "joints_inside" in metrics:
         m = metrics["joints_inside"]
         rows.append(("joints inside the body", f(m["fraction"], ".3f"),

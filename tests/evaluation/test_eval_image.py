@@ -8,7 +8,7 @@ import pytest
 import torch
 from eval_scene import naive_pckt
 
-from s3o_warp.evaluation.image import mask_iou, pck_transfer, surface_under_keypoints
+from s3o_warp.evaluation.image import GAP_BANDS, mask_iou, pck_transfer, surface_under_keypoints
 from s3o_warp.geometry import project, project_np
 
 
@@ -54,6 +54,24 @@ def test_pck_transfer_matches_naive_loops():
         assert 0 < c0 < t0  # both outcomes occur, so the test can fail
         assert r["pairs"] == A * (A - 1)
         assert r["per_keypoint_total"].sum() == t0 and r["per_keypoint_correct"].sum() == c0
+        # by frame gap: the same pairs counted by band, from the loops' transferred positions
+        fidx = np.array([0, 2, 7, 30])
+        rg = _fast_pckt(kp, face_index, bary, verts, faces, K, area, alpha=0.3, threshold_frame=mode,
+                        frame_index=fidx)
+        want_c, want_t = np.zeros(4, int), np.zeros(4, int)
+        for i in range(A):
+            for j in range(A):
+                for p in range(P):
+                    if i == j or kp[i, p, 2] < 0.5 or kp[j, p, 2] < 0.5:
+                        continue
+                    b = int(np.digitize(abs(fidx[i] - fidx[j]), GAP_BANDS)) - 1
+                    thr = 0.3 * np.sqrt(area[i if mode == "reference" else j])
+                    want_t[b] += 1
+                    want_c[b] += np.linalg.norm(pred0[i, j, p] - kp[j, p, :2]) < thr
+        assert [g["frames"] for g in rg["by_gap"]] == ["1-3", "4-11", "12-23", "24+"]
+        assert [g["total"] for g in rg["by_gap"]] == want_t.tolist() and want_t.all()
+        assert [g["correct"] for g in rg["by_gap"]] == want_c.tolist()
+        assert [g["total"] for g in r["by_gap"]] == [t0, 0, 0, 0]  # default: frames 0..A-1, all within 3
         # one reference frame per chunk (long videos) and no pair arrays: the same counts
         rc = _fast_pckt(kp, face_index, bary, verts, faces, K, area, alpha=0.3, threshold_frame=mode,
                         chunk_elements=1, pair_limit=0)
