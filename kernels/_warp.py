@@ -144,3 +144,57 @@ def check_float(name: str, arg: str, t: torch.Tensor) -> None:
     """Raise ``TypeError`` unless ``t`` is float32 (the kernels' dtype)."""
     if t.dtype != torch.float32:
         raise TypeError(f"{name}(): {arg} must be float32, got {t.dtype}")
+
+
+def _version(t: torch.Tensor) -> int | None:
+    try:
+        return t._version  # in-place changes bump it; a view shares its base's
+    except RuntimeError:  # an inference-mode tensor keeps no version: nothing is cached for it
+        return None
+
+
+def set_index_bounds(t: torch.Tensor, lo: int, hi: int) -> None:
+    """Record that every value of the integer tensor ``t`` lies in [lo, hi], until it is changed in place (an op's
+    output whose range the op knows: a z-buffer's face ids, the frame column of a ``nonzero``)."""
+    v = _version(t)
+    if v is not None:
+        t._s3o_bounds = (v, int(lo), int(hi))
+
+
+def _recorded(t: torch.Tensor | None) -> tuple[int, int] | None:
+    b = getattr(t, "_s3o_bounds", None) if t is not None else None
+    return (b[1], b[2]) if b is not None and b[0] == _version(t) else None
+
+
+def index_bounds(t: torch.Tensor, within: tuple[int, int]) -> tuple[int, int]:
+    """Bounds ``(lo, hi)`` of a non-empty integer tensor's values, for an op's check that they lie in ``within``.
+
+    On a GPU reading a value is a host sync, so a tensor's bounds are read once and kept until it changes in place:
+    a fixed index buffer (a mesh's faces between resamplings) is read on its first check only. A tensor with
+    recorded bounds (:func:`set_index_bounds`) costs no read, nor does a view of one (a slice of a z-buffer) when its
+    base's bounds lie in ``within`` (they bound the view's values, perhaps loosely: otherwise the view is read).
+    """
+    b = _recorded(t)
+    if b is None:
+        base = _recorded(t._base)
+        if base is not None and within[0] <= base[0] and base[1] <= within[1]:
+            return base
+        b = tuple(int(v) for v in torch.stack(torch.aminmax(t)).tolist())
+        set_index_bounds(t, *b)
+    return b
+
+
+def cached(t: torch.Tensor, key: str, fn):
+    """``fn()``, computed once per tensor ``t`` and in-place change and kept on it under ``key``: what an op derives
+    from a fixed input (a mesh's neighbour lists from its faces) is derived on the first call only (on a GPU,
+    without the host syncs of its dynamic shapes)."""
+    v = _version(t)
+    memo = getattr(t, "_s3o_memo", None)
+    if v is not None and memo is not None and key in memo and memo[key][0] == v:
+        return memo[key][1]
+    out = fn()
+    if v is not None:
+        if memo is None:
+            memo = t._s3o_memo = {}
+        memo[key] = (v, out)
+    return out

@@ -10,7 +10,17 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from ._warp import check_float, check_shape, frame_chunks, map_chunks, same_device, stream_of, to_wp, wp_device
+from ._warp import (
+    check_float,
+    check_shape,
+    frame_chunks,
+    index_bounds,
+    map_chunks,
+    same_device,
+    stream_of,
+    to_wp,
+    wp_device,
+)
 
 __all__ = ["nearest_point"]
 
@@ -69,8 +79,7 @@ def nearest_point(queries: torch.Tensor, query_frame: torch.Tensor, points: torc
         return out.long()
     if points.shape[1] == 0:
         raise ValueError(f"{name}(): points has no candidates (shape {tuple(points.shape)})")
-    lo_hi = torch.stack(torch.aminmax(query_frame)).tolist()  # one device sync for the range check
-    fmin, fmax = int(lo_hi[0]), int(lo_hi[1])
+    fmin, fmax = index_bounds(query_frame, (0, points.shape[0] - 1))  # a device sync unless the bounds are known
     if fmin < 0 or fmax >= points.shape[0]:
         raise ValueError(f"{name}(): query_frame must lie in [0, {points.shape[0]}), got [{fmin}, {fmax}]")
     qf = query_frame.to(torch.int32).contiguous()

@@ -21,7 +21,18 @@ from dataclasses import dataclass
 import torch
 import warp as wp
 
-from ._warp import check_float, check_shape, frame_chunks, map_chunks, same_device, stream_of, to_wp, wp_device
+from ._warp import (
+    check_float,
+    check_shape,
+    frame_chunks,
+    index_bounds,
+    map_chunks,
+    same_device,
+    set_index_bounds,
+    stream_of,
+    to_wp,
+    wp_device,
+)
 from .raster_backward import (
     barycentrics_grad_kernel,
     interpolate_grad_kernel,
@@ -70,7 +81,7 @@ def _check_faces(op: str, faces: torch.Tensor, V: int) -> torch.Tensor:
         raise TypeError(f"{op}(): faces must be int32 or int64, got {faces.dtype}")
     if faces.shape[0] == 0:
         raise ValueError(f"{op}(): faces must have shape (F, 3) with F >= 1, got {tuple(faces.shape)}")
-    lo, hi = int(faces.min()), int(faces.max())
+    lo, hi = index_bounds(faces, (0, V - 1))
     if lo < 0 or hi >= V:
         raise ValueError(f"{op}(): faces must index vertices in [0, {V - 1}], got values in [{lo}, {hi}]")
     return faces.to(torch.int32).contiguous()
@@ -455,6 +466,7 @@ def rasterize(verts, faces, K, image_size, tile_size: int = 4, near: float = 1e-
 
     with torch.no_grad():
         map_chunks(raster, frame_chunks(verts, T))
+    set_index_bounds(face_index, -1, F - 1)  # interpolate's check of it (or of a slice) reads nothing back
     bary, depth = _BarycentricsFn.apply(xy, z, faces32, face_index)
     return face_index, bary, depth
 
@@ -492,7 +504,7 @@ def interpolate(attr, faces, face_index, bary):
     V, C = attr.shape[-2], attr.shape[-1]
     faces32 = _check_faces(op, faces, V)
     F = faces32.shape[0]
-    if face_index.numel() and (int(face_index.min()) < -1 or int(face_index.max()) >= F):
-        raise ValueError(f"{op}(): face_index must be -1 or a face id in [0, {F - 1}], "
-                         f"got values in [{int(face_index.min())}, {int(face_index.max())}]")
+    lo, hi = index_bounds(face_index, (-1, F - 1)) if face_index.numel() else (-1, -1)
+    if lo < -1 or hi >= F:
+        raise ValueError(f"{op}(): face_index must be -1 or a face id in [0, {F - 1}], got values in [{lo}, {hi}]")
     return _InterpolateFn.apply(attr, faces32, face_index.to(torch.int32).contiguous(), bary)

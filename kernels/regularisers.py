@@ -21,7 +21,18 @@ import math
 import torch
 import warp as wp
 
-from ._warp import check_float, check_shape, frame_chunks, map_chunks, same_device, stream_of, to_wp, wp_device
+from ._warp import (
+    check_float,
+    cached,
+    check_shape,
+    frame_chunks,
+    index_bounds,
+    map_chunks,
+    same_device,
+    stream_of,
+    to_wp,
+    wp_device,
+)
 
 __all__ = ["mesh_edges", "dynamic_rigidity_loss", "arap_loss", "laplacian_loss", "symmetry_loss"]
 
@@ -322,11 +333,9 @@ def _check_index(name: str, arg: str, idx: torch.Tensor, cols: int, num_verts: i
     check_shape(name, arg, idx, (None, cols))
     if idx.dtype.is_floating_point or idx.dtype == torch.bool or idx.is_complex():
         raise TypeError(f"{name}(): {arg} must be an integer tensor, got {idx.dtype}")
-    if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= num_verts):
-        raise ValueError(
-            f"{name}(): {arg} indices must lie in [0, {num_verts}) (the vertex count), "
-            f"got [{int(idx.min())}, {int(idx.max())}]"
-        )
+    lo, hi = index_bounds(idx, (0, num_verts - 1)) if idx.numel() else (0, 0)
+    if lo < 0 or hi >= num_verts:
+        raise ValueError(f"{name}(): {arg} indices must lie in [0, {num_verts}) (the vertex count), got [{lo}, {hi}]")
     return idx.to(torch.int32).contiguous()
 
 
@@ -476,7 +485,8 @@ def laplacian_loss(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     _check_verts(name, verts, batched=False)
     _check_index(name, "faces", faces, 3, verts.shape[0])
     same_device(name, verts, faces)
-    offsets, neighbours = _csr_neighbours(mesh_edges(faces), verts.shape[0])
+    offsets, neighbours = cached(faces, f"umbrella_csr_{verts.shape[0]}",  # the faces change only at a resampling
+                                 lambda: _csr_neighbours(mesh_edges(faces), verts.shape[0]))
     delta = _UmbrellaFn.apply(verts.contiguous(), offsets, neighbours)
     return (delta * delta).sum() / max(verts.shape[0], 1)
 
@@ -517,8 +527,8 @@ def symmetry_loss(verts: torch.Tensor, plane: tuple) -> torch.Tensor:
             f"{name}(): plane must be (normal of shape (3,), scalar offset), got normal {tuple(normal.shape)} "
             f"and offset {tuple(offset.shape)}"
         )
-    norm = torch.linalg.vector_norm(normal.detach())
-    if not torch.isfinite(norm) or float(norm) == 0.0:
+    norm = cached(normal, "norm", lambda: float(torch.linalg.vector_norm(normal.detach())))  # one read per plane
+    if not math.isfinite(norm) or norm == 0.0:
         raise ValueError(f"{name}(): plane normal must be finite and nonzero, got {normal.tolist()}")
     same_device(name, verts, normal, offset)
     n = normal / torch.linalg.vector_norm(normal)

@@ -364,10 +364,10 @@ class Fitter:
         keep = torch.ones(m.num_frames, dtype=torch.bool, device=frames.device)
         keep[frames] = False
         per_frame = (m.root_aa, m.root_t, m.bone_aa, m.bone_t) + (() if m.pp_shared else (m.pp,))
-        saved = [p.data[keep].clone() for p in per_frame]
+        saved = [p.data.clone() for p in per_frame]
         self.opt.step()
-        for p, v in zip(per_frame, saved):
-            p.data[keep] = v
+        for p, v in zip(per_frame, saved):  # where(), not a boolean index: no host sync on a GPU
+            p.data.copy_(torch.where(keep.view(-1, *([1] * (p.dim() - 1))), v, p.data))
 
     # -- skeleton learning ---------------------------------------------------------------------------
     def steps_per_epoch(self, n: int) -> int:

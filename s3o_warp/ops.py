@@ -4,6 +4,7 @@ Shapes: T frames, V/N vertices, F faces, B bones, E edges, H x W image. Camera s
 (+x right, +y down, +z forward); the centre of pixel (c, r) is at (c, r). See each op's docstring.
 """
 
+from s3o_warp.kernels._warp import set_index_bounds
 from s3o_warp.kernels.nearest import nearest_point
 from s3o_warp.kernels.raster import (
     interpolate,
@@ -34,6 +35,7 @@ __all__ = [
     "nearest_point",
     "rasterize",
     "ray_hit",
+    "set_index_bounds",
     "skinning_weights",
     "soft_silhouette",
     "soft_silhouette_naive",

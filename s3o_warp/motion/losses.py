@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 
 from s3o_warp.geometry import project
-from s3o_warp.ops import nearest_point
+from s3o_warp.ops import nearest_point, set_index_bounds
 
 
 def silhouette_loss(sil: torch.Tensor, mask: torch.Tensor, frame_weight: torch.Tensor | None = None) -> torch.Tensor:
@@ -44,8 +44,10 @@ def coverage_loss(
         keep = torch.randperm(total, device=idx.device, generator=generator)[: max_pixels * t]
         idx = idx[keep]
     q = idx[:, [2, 1]].to(proj.dtype)
-    nearest = nearest_point(q.float(), idx[:, 0], proj.detach().float())
-    d = (proj[idx[:, 0], nearest] - q).norm(dim=-1)
+    frame = idx[:, 0]
+    set_index_bounds(frame, 0, t - 1)  # rows of nonzero() over t frames: nearest_point's check reads nothing back
+    nearest = nearest_point(q.float(), frame, proj.detach().float())
+    d = (proj[frame, nearest] - q).norm(dim=-1)
     return d.sum() * (total / idx.shape[0]) / (t * S * S)
 
 
