@@ -106,3 +106,28 @@ def test_a_step_reads_fixed_inputs_only_once(reads):
     faces[0, 0] = len(v0)  # changed in place to an out-of-range index: checked again, and refused
     with pytest.raises(ValueError, match="faces"):
         soft_silhouette(verts, faces, K, (24, 24))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (torch's sync debug mode)")
+def test_cuda_ops_with_known_bounds_do_not_sync():
+    """On a GPU, the index-taking ops a step repeats make no host sync once their fixed inputs were checked:
+    torch's sync debug mode raises on any."""
+    dev = torch.device("cuda")
+    mesh = trimesh.creation.icosphere(subdivisions=1, radius=0.4)
+    v0 = torch.tensor(mesh.vertices, dtype=torch.float32, device=dev) + torch.tensor([0.0, 0.0, 2.5], device=dev)
+    verts = torch.stack([v0, v0 + 0.05])
+    faces = torch.tensor(mesh.faces, dtype=torch.int64, device=dev)
+    K = torch.tensor([[20.0, 0.0, 11.5], [0.0, 20.0, 11.5], [0.0, 0.0, 1.0]], device=dev)
+    plane = (torch.tensor([1.0, 0.0, 0.0], device=dev), 0.0)
+    face_index, bary, _ = rasterize(verts, faces, K, (24, 24))
+    laplacian_loss(verts[0], faces)
+    symmetry_loss(verts[0], plane)
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        interpolate(verts + 0.01, faces, face_index, bary)
+        interpolate(verts[:-1], faces, face_index[:-1], bary[:-1])
+        laplacian_loss(verts[0] + 0.01, faces)
+        symmetry_loss(verts[0] + 0.01, plane)
+    finally:
+        torch.cuda.set_sync_debug_mode(0)
