@@ -1,12 +1,13 @@
 #!/usr/bin/env python
 """Fit benchmark: accuracy and wall time of whole fits, written to ``benchmarks/fit-<device>.json``.
 
-    python scripts/bench_fit.py --device cpu --cases quadruped [fox horse robot lizard cows dog dance-twirl] [--methods s3o virtual]
+    python scripts/bench_fit.py --device cpu --cases quadruped [fox horse robot robot-dance lizard cows dog dance-twirl] [--methods s3o virtual]
                                 [--seeds 0 1 2] [--preset default] [--set key=value ...] [--out-dir DIR] [--profile]
 
 Cases: ``quadruped`` (the built-in default shot, the README's main command), ``fox`` (Khronos Fox Walk,
 48 frames, 320x240, 90-degree orbit), ``fox120`` (the same clip with a 120-degree orbit), ``horse`` (Quaternius Horse Walk, 48 frames, 320x240, 120-degree
-orbit), ``robot`` (three.js's RobotExpressive biped, Walking, 48 frames, 320x240, 120-degree orbit), ``lizard``
+orbit), ``robot`` (three.js's RobotExpressive biped, Walking, 48 frames, 320x240, 120-degree orbit), ``robot-dance``
+(the same robot's Dance seen from the front: a 60-degree orbit about its front, arms away from the body), ``lizard``
 (the built-in lizard's crawl, 48 frames, 320x240, 120-degree orbit from 30 degrees up), ``cows`` / ``dog``
 (DAVIS with BADJA keypoints), ``dance-twirl`` (DAVIS, a dancer; no keypoints, so no PCK-T), ``cows-box`` /
 ``dog-box`` (cows and dog on masks made from a box on frame 0, :data:`BOXED`). Cases that need ../shared/data skip with a
@@ -58,6 +59,8 @@ SYNTH = {
     "horse": dict(source="gltf/quaternius_Horse.glb", clip="Walk", frames=48, fps=30.0, size=(320, 240), azim=(-60.0, 60.0), elev=15.0),
     "robot": dict(source="gltf/threejs_RobotExpressive.glb", clip="Walking", frames=48, fps=30.0, size=(320, 240),
                   azim=(-60.0, 60.0), elev=15.0),
+    "robot-dance": dict(source="gltf/threejs_RobotExpressive.glb", clip="Dance", frames=48, fps=30.0, size=(320, 240),
+                        azim=(60.0, 120.0), elev=15.0),
     "lizard": dict(source="lizard", frames=48, fps=30.0, size=(320, 240), azim=(-60.0, 60.0), elev=30.0),
 }
 DAVIS = {"cows": "cows", "dog": "dog", "dance-twirl": "dance-twirl"}

@@ -104,6 +104,8 @@ def test_git_commit_outside_a_checkout(tmp_path, monkeypatch):
 def test_other_body_plans_are_cases():
     assert {"robot", "lizard"} <= set(bench_fit.SYNTH) and "dance-twirl" in bench_fit.DAVIS
     assert bench_fit.SYNTH["robot"]["clip"] == "Walking" and bench_fit.SYNTH["lizard"]["source"] == "lizard"
+    front = bench_fit.SYNTH["robot-dance"]  # the biped from the front: an orbit about azimuth 90 (0 is its side)
+    assert front["clip"] == "Dance" and sum(front["azim"]) / 2 == 90.0
 
 
 def test_a_davis_case_without_keypoints_opens(shared_data, tmp_path, monkeypatch):
