@@ -587,16 +587,17 @@ def mirror_pairs(skel: Skeleton2D, s: CoarseSettings) -> list[tuple[int, int]]:
 
 def front_view(skel: Skeleton2D, s: CoarseSettings, pairs: list[tuple[int, int]] | None = None) -> bool:
     """Whether the frame shows the body from the front (or the back): one of its :func:`mirror_pairs` spreads to
-    both sides of its junction, more than 90 degrees apart (a person's arms held out). A side view's paired limbs
-    hang the same way (legs, even mid-stride, are less than 75 degrees apart); a front view with arms down cannot be
-    told from one and is lifted as a side view."""
+    both sides of its junction, more than 90 degrees apart, and does not hang (not both limbs pointing down): a
+    person's arms held out, level or raised. A side view's paired limbs hang the same way, and legs or toes spread
+    wide still hang down (without that test a few side-view frames of the horse, the walking robot and the cows
+    passed); a front view with arms down cannot be told from a side view and is lifted as one."""
     pairs = mirror_pairs(skel, s) if pairs is None else pairs
     for e1, e2 in pairs:
         j = int(np.intersect1d(skel.edges[e1], skel.edges[e2])[0])
         d = [skel.nodes[skel.edges[e][0] if skel.edges[e][1] == j else skel.edges[e][1]] - skel.nodes[j]
              for e in (e1, e2)]
-        if d[0][0] * d[1][0] < 0 and float(np.dot(d[0], d[1])) < 0:
-            return True
+        if d[0][0] * d[1][0] < 0 and float(np.dot(d[0], d[1])) < 0 and min(d[0][1], d[1][1]) <= 0:
+            return True  # image rows grow downwards: a limb pointing down has d_y > 0
     return False
 
 

@@ -377,6 +377,17 @@ def test_front_view_pairs_arms_and_legs_about_the_vertical():
     # arms hanging: a front view that cannot be told from a side view's legs; the quadruped's pairs hang the same way
     assert not front_view(skeleton_2d(person(arms_out=False)), s)
     assert not front_view(skeleton_2d(quadruped()), s)
+    # legs spread wider than 90 degrees still hang down: no front view (a side view's wide stride, or toes)
+    wide = np.zeros((240, 320), np.uint8)
+    cv2.ellipse(wide, (160, 95), (26, 55), 0, 0, 360, 1, -1)
+    cv2.circle(wide, (160, 28), 18, 1, -1)
+    for foot in ((50, 215), (270, 215)):
+        cv2.line(wide, (160, 145), foot, 1, 14)
+    sk_wide = skeleton_2d(wide.astype(bool))
+    spread = [p for p in mirror_pairs(sk_wide, s)
+              if float(np.dot(*[sk_wide.nodes[_leaf_end(sk_wide, e)] - sk_wide.nodes[
+                  int(np.intersect1d(sk_wide.edges[p[0]], sk_wide.edges[p[1]])[0])] for e in p])) < 0]
+    assert spread and not front_view(sk_wide, s)
 
 
 def test_lift_of_a_front_view_mirrors_about_the_vertical_plane():
