@@ -204,9 +204,10 @@ def lift_to_3d(skel: Skeleton2D, K, depth: float, settings: CoarseSettings | Non
         centre_px = np.array([np.interp(acc[-1] / 2, acc, p[:, 0]), np.interp(acc[-1] / 2, acc, p[:, 1])])
         torso_r_px = float(skel.edge_radius.max())
     C = depth * (Kinv @ np.array([centre_px[0], centre_px[1], 1.0]))
-    front = front_view(skel, s)
+    mirrored = mirror_pairs(skel, s)
+    front = front_view(skel, s, mirrored)
     if front:  # the pairs are apart in the image already: nothing moves off the plane x = 0
-        pairs, dz, normal = mirror_pairs(skel, s), 0.0, np.array([1.0, 0.0, 0.0])
+        pairs, dz, normal = mirrored, 0.0, np.array([1.0, 0.0, 0.0])
     else:
         pairs, dz, normal = symmetric_pairs(skel, s), s.dz_fraction * torso_r_px * depth / f, np.array([0.0, 0.0, 1.0])
     node_z = np.zeros(len(skel.nodes))

@@ -543,46 +543,53 @@ def _leaf_pairs(skel: Skeleton2D, s: CoarseSettings):
                     yield j, e1, e2, d1, d2, lr, rr
 
 
-def _greedy(cands: list) -> list[tuple[int, int]]:
-    """Best first (lowest score), each edge in at most one pair: ``cands`` of (score, e1, e2)."""
-    used: set[int] = set()
-    pairs = []
-    for _, e1, e2 in sorted(cands):
-        if e1 not in used and e2 not in used:
-            used |= {e1, e2}
-            pairs.append((min(e1, e2), max(e1, e2)))
-    return pairs
+def _far(skel: Skeleton2D, e: int, j: int) -> int:
+    """The node of edge e that is not j."""
+    u, v = (int(x) for x in skel.edges[e])
+    return v if u == j else u
+
+
+def _pairs(skel: Skeleton2D, s: CoarseSettings, score) -> list[tuple[int, int, int]]:
+    """``(junction, e1, e2)`` with e1 < e2: the :func:`_leaf_pairs` that ``score(d1, d2, lr, rr)`` accepts (a float,
+    lower is better; None rejects), paired greedily best first within each junction, each edge in at most one pair."""
+    cands: dict[int, list] = {}
+    for j, e1, e2, d1, d2, lr, rr in _leaf_pairs(skel, s):
+        sc = score(d1, d2, lr, rr)
+        if sc is not None:
+            cands.setdefault(j, []).append((sc, e1, e2))
+    out = []
+    for j, c in cands.items():  # the junctions in order; the pairs of one junction compete only among themselves
+        used: set[int] = set()
+        for _, e1, e2 in sorted(c):
+            if e1 not in used and e2 not in used:
+                used |= {e1, e2}
+                out.append((j, min(e1, e2), max(e1, e2)))
+    return out
 
 
 def symmetric_pairs(skel: Skeleton2D, s: CoarseSettings) -> list[tuple[int, int]]:
     """Leaf-edge pairs at one junction with similar length, radius and 2D direction (greedy, best first)."""
     cos_max = np.cos(np.deg2rad(s.sym_max_angle_deg))
-    pairs = []
-    for j in skel.junctions:  # per junction, as the pairs of one junction compete only among themselves
-        cands = []
-        for jj, e1, e2, d1, d2, lr, rr in _leaf_pairs(skel, s):
-            cos = float(np.dot(d1, d2))
-            if jj == j and cos >= cos_max:
-                cands.append((abs(np.log(lr)) + abs(np.log(rr)) + np.arccos(np.clip(cos, -1, 1)) / np.pi, e1, e2))
-        pairs += _greedy(cands)
-    return pairs
+
+    def score(d1, d2, lr, rr):
+        cos = float(np.dot(d1, d2))
+        return abs(np.log(lr)) + abs(np.log(rr)) + np.arccos(np.clip(cos, -1, 1)) / np.pi if cos >= cos_max else None
+
+    return [(e1, e2) for _, e1, e2 in _pairs(skel, s, score)]
 
 
 def mirror_pairs(skel: Skeleton2D, s: CoarseSettings) -> list[tuple[int, int]]:
     """Leaf-edge pairs at one junction with similar length and radius whose 2D directions are mirror images about
     the image's vertical axis (within :data:`MIRROR_TOL_DEG`), greedy best first; each pair ``(left, right)``: the
     first ends nearer the image's left."""
-    pairs = []
-    for j in skel.junctions:
-        cands = []
-        for jj, e1, e2, d1, d2, lr, rr in _leaf_pairs(skel, s):
-            err = np.arccos(np.clip(float(d1[0] * -d2[0] + d1[1] * d2[1]), -1, 1))
-            if jj == j and err <= np.deg2rad(MIRROR_TOL_DEG):
-                cands.append((abs(np.log(lr)) + abs(np.log(rr)) + err / np.pi, e1, e2))
-        for e1, e2 in _greedy(cands):
-            x = [skel.nodes[skel.edges[e][0] if skel.edges[e][1] == j else skel.edges[e][1]][0] for e in (e1, e2)]
-            pairs.append((e1, e2) if x[0] <= x[1] else (e2, e1))
-    return pairs
+    tol = np.deg2rad(MIRROR_TOL_DEG)
+
+    def score(d1, d2, lr, rr):
+        err = np.arccos(np.clip(float(-d1[0] * d2[0] + d1[1] * d2[1]), -1, 1))
+        return abs(np.log(lr)) + abs(np.log(rr)) + err / np.pi if err <= tol else None
+
+    return [(e1, e2) if skel.nodes[_far(skel, e1, j)][0] <= skel.nodes[_far(skel, e2, j)][0] else (e2, e1)
+            for j, e1, e2 in _pairs(skel, s, score)]
 
 
 def front_view(skel: Skeleton2D, s: CoarseSettings, pairs: list[tuple[int, int]] | None = None) -> bool:
@@ -594,8 +601,7 @@ def front_view(skel: Skeleton2D, s: CoarseSettings, pairs: list[tuple[int, int]]
     pairs = mirror_pairs(skel, s) if pairs is None else pairs
     for e1, e2 in pairs:
         j = int(np.intersect1d(skel.edges[e1], skel.edges[e2])[0])
-        d = [skel.nodes[skel.edges[e][0] if skel.edges[e][1] == j else skel.edges[e][1]] - skel.nodes[j]
-             for e in (e1, e2)]
+        d = [skel.nodes[_far(skel, e, j)] - skel.nodes[j] for e in (e1, e2)]
         if d[0][0] * d[1][0] < 0 and float(np.dot(d[0], d[1])) < 0 and min(d[0][1], d[1][1]) <= 0:
             return True  # image rows grow downwards: a limb pointing down has d_y > 0
     return False
