@@ -127,7 +127,11 @@ class MotionConfig:
     lr_motion: Annotated[float, NONNEG] = 0.01
     """Adam learning rate of root and bone rotations/translations."""
     lr_shape: Annotated[float, NONNEG] = 0.002
-    """Adam learning rate of the canonical vertices."""
+    """Learning rate of the canonical vertices in the joint phase (their step: ``shape_smoothing``)."""
+    shape_smoothing: Annotated[float, NONNEG] = 0.0
+    """``lam`` of the joint phase's shape step (``s3o_warp.motion.large_steps``): Adam steps on ``u = (I + lam L) x``
+    with one second moment for the whole mesh (the largest), so the vertices move by a smoothed step and a vertex
+    with a small gradient moves little. 0: plain per-vertex Adam on the vertices."""
     lr_color: Annotated[float, NONNEG] = 0.02
     """Adam learning rate of the vertex-colour logits."""
     lr_bones: Annotated[float, NONNEG] = 0.005

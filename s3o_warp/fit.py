@@ -45,11 +45,13 @@ from s3o_warp.config import Config, check, to_dict, to_toml
 from s3o_warp.data.io import copy_file, write_text
 from s3o_warp.data.store import FitData, prepare_data
 from s3o_warp.errors import InputError
+from s3o_warp.evaluation.views import body_width_ratio, mesh_smoothness
 from s3o_warp.kernels import _warp
 from s3o_warp.model import S3OModel
 from s3o_warp.motion import objective
 from s3o_warp.motion.crossings import resolve_model_crossings
 from s3o_warp.motion.hypotheses import Search, select_hypothesis
+from s3o_warp.motion.large_steps import FitAdam
 from s3o_warp.motion.losses import soft_iou
 from s3o_warp.motion.windows import FrameWindows
 from s3o_warp.ops import mesh_edges
@@ -194,6 +196,8 @@ class Fitter:
                 {"params": [m.color_logits], "lr": mc.lr_color, "name": "color"},
                 {"params": [m.bone_centers, m.bone_quat, m.bone_log_scales], "lr": mc.lr_bones, "name": "bones"},
             ]
+        if self.phase == "joint" and mc.shape_smoothing > 0:
+            return FitAdam(groups, m.faces, mc.shape_smoothing)
         return torch.optim.Adam(groups)
 
     def phase_steps(self, phase: str) -> int:
@@ -227,6 +231,14 @@ class Fitter:
                                 torch.as_tensor(src[1], dtype=torch.float32, device=self.device))
             self._joints_src = src
         return self._joints_dev
+
+    def surface(self) -> dict[str, float]:
+        """The canonical mesh's smoothness and roundness (roughness, normal consistency, width ratio across the
+        lift's symmetry plane), logged with every step record so a reader sees where a fit crumples or flattens."""
+        v = self.model.verts.detach().cpu().numpy()
+        normal, offset = self.ctx.sym_plane
+        return {**mesh_smoothness(v, self.model.faces.cpu().numpy()),
+                "width_ratio": body_width_ratio(v, normal.cpu().numpy(), float(offset))}
 
     def hard_iou(self) -> float:
         return objective.hard_iou(self.model, self.data, self.cfg.motion.batch_frames)
@@ -313,6 +325,7 @@ class Fitter:
                     "lr": {g["name"]: g["lr"] for g in self.opt.param_groups},
                     "terms": {k: float(v.detach()) for k, (w, v) in terms.items()},
                     "weighted": {k: float(w * v.detach()) for k, (w, v) in terms.items()},
+                    "surface": self.surface(),
                 }
                 self.record(rec)
                 bar.set_postfix(loss=f"{float(total):.4f}", iou=f"{iou:.3f}")
@@ -430,6 +443,19 @@ class Fitter:
                     self.opt.state[p] = old.state[p]
         self._good = None
 
+    def _apply_new_rates(self, saved: dict) -> None:
+        """A learning rate set otherwise than in the checkpoint's settings (``--resume --set motion.lr_shape=...``)
+        goes into its optimiser group; the others keep the checkpoint's (which the NaN guard may have lowered)."""
+        keys = {"motion": "lr_motion", "camera": "lr_camera", "color": "lr_color", "bones": "lr_bones",
+                "shape": "lr_shape"}
+        for g in self.opt.param_groups:
+            section, key = ("coarse", "lr") if self.phase == "coarse" else ("motion", keys.get(g.get("name"), ""))
+            new, old = getattr(getattr(self.cfg, section), key, None), saved.get(section, {}).get(key)
+            if new is not None and old is not None and new != old:
+                log.info("resume: %s.%s %g (the checkpoint's %g) applied to the '%s' group", section, key, new, old,
+                         g["name"])
+                g["lr"] = new
+
     # -- checkpoints --------------------------------------------------------------------------------
     def state(self) -> dict:
         return {
@@ -507,6 +533,7 @@ class Fitter:
                 self._hypotheses = Search.from_state(st["hypotheses"], st["optimizer"])
             else:
                 self.opt.load_state_dict(st["optimizer"])
+                self._apply_new_rates(st["config"])
         self.gen.set_state(st["generator"])
         torch.set_rng_state(st["torch_rng"])
         self._pending_m_step = bool(st.get("pending_m_step", False))

@@ -23,6 +23,9 @@ def test_small_fit_raises_iou_and_writes_the_run_directory(tiny_sequence, tmp_pa
     log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     evals = {r["what"]: r["iou_all_frames"] for r in log if r["phase"] == "eval" and "iou_all_frames" in r}
     assert any(r.get("what") == "resample" for r in log)  # even resampling ran at the epoch ends
+    steps = [r for r in log if r["phase"] in ("coarse", "warmup", "joint")]
+    assert steps and all(0 <= r["surface"]["roughness"] <= 1 and -1 <= r["surface"]["normal_consistency"] <= 1
+                         for r in steps)  # the canonical mesh's smoothness at every logged step
     # hard-render IoU over all frames: the coarse model at the start against the end of the fit
     assert evals["final"] > evals["initial"] + 0.1, evals
     for name in ("config.toml", "canonical.ply", "skeleton.json", "motion.npz", "metrics.json", "quad.usdc", "quad.glb"):
@@ -262,3 +265,33 @@ def test_cli_fits_a_video_file_with_a_mask_folder(tiny_sequence, tmp_path):
     assert m["mask_iou"]["mean"] > 0.3 and m["pck_t"] is not None  # masks and keypoints beside the mask folder
     assert np.load(run / "motion.npz")["fps"] == pytest.approx(12.0)
     assert (run / "renders" / "overlay.mp4").is_file() or (run / "renders" / "overlay.gif").is_file()
+
+
+def test_resume_applies_a_changed_learning_rate(tiny_sequence, tmp_path, monkeypatch):
+    """``--resume --set motion.lr_shape=...``: the new rate goes into the optimiser's shape group (the checkpoint's
+    optimiser state carries the old one); an unchanged rate keeps the checkpoint's."""
+    cfg = _cfg(**{"coarse.steps": 4, "motion.warmup_steps": 4, "motion.steps": 6})
+    run = tmp_path / "run"
+    orig = Fitter.motion_losses
+
+    def stopping(self, frames):
+        if self.phase == "joint" and self.step == 2:
+            self.request_stop()
+        return orig(self, frames)
+
+    monkeypatch.setattr(Fitter, "motion_losses", stopping)
+    with pytest.raises(FitInterrupted):
+        fit(tiny_sequence, run, cfg, torch.device("cpu"))
+    monkeypatch.setattr(Fitter, "motion_losses", orig)
+    seen = {}
+    orig_run = Fitter.run
+
+    def capture(self):
+        seen.update({g["name"]: g["lr"] for g in self.opt.param_groups})
+        return orig_run(self)
+
+    monkeypatch.setattr(Fitter, "run", capture)
+    new = _cfg(**{"coarse.steps": 4, "motion.warmup_steps": 4, "motion.steps": 6, "motion.lr_shape": 0.0123})
+    fit(tiny_sequence, run, new, torch.device("cpu"), resume=True)
+    assert seen["shape"] == 0.0123
+    assert seen["motion"] == cfg.motion.lr_motion

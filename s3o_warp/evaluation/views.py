@@ -119,9 +119,18 @@ def roughness(verts: np.ndarray, faces: np.ndarray, angle_deg: float = ROUGH_ANG
 
     Vertices at the same position are merged first, so a model split along its UV seams counts its seams.
     """
+    return mesh_smoothness(verts, faces, angle_deg)["roughness"]
+
+
+def mesh_smoothness(verts: np.ndarray, faces: np.ndarray, angle_deg: float = ROUGH_ANGLE_DEG) -> dict[str, float]:
+    """A mesh's own smoothness, no reference needed: ``roughness`` (:func:`roughness`) and ``normal_consistency``,
+    the mean cosine of the angle between the normals of the two faces of each interior edge (1 for a plane)."""
     m = trimesh.Trimesh(np.asarray(verts, np.float64), np.asarray(faces, np.int64), process=True)
     angles = m.face_adjacency_angles
-    return float((angles > math.radians(angle_deg)).mean()) if len(angles) else 0.0
+    if not len(angles):
+        return {"roughness": 0.0, "normal_consistency": 1.0}
+    return {"roughness": float((angles > math.radians(angle_deg)).mean()),
+            "normal_consistency": float(np.cos(angles).mean())}
 
 
 def _normal_consistency(p: np.ndarray, pn: np.ndarray, g: np.ndarray, gn: np.ndarray) -> float:
@@ -172,3 +181,28 @@ def surface_quality(pred_verts: np.ndarray, pred_faces: np.ndarray, gt_verts: np
     return {"fscore": {k: float(np.mean(v)) for k, v in fs.items()}, "normal_consistency": float(np.mean(nc)),
             "roughness": {"pred": float(np.mean(rp)), "truth": float(np.mean(rg)), "angle_deg": ROUGH_ANGLE_DEG},
             "frames": [int(t) for t in frames]}
+
+
+WIDTH_SLAB = 0.3
+""":func:`body_width_ratio` measures the middle this share of the body's length."""
+
+
+def body_width_ratio(verts: np.ndarray, normal: np.ndarray, offset: float = 0.0) -> float:
+    """How round the body is across its symmetry plane ``{x : n . x = offset}``: in the slab of the middle
+    :data:`WIDTH_SLAB` of the body's length (its principal axis within the plane), the extent across the plane over
+    the extent along the plane's other axis. A quadruped seen from the side: the torso's width over its height; a
+    cut-out of a side view: near 0."""
+    v = np.asarray(verts, np.float64)
+    n = np.asarray(normal, np.float64)
+    n = n / np.linalg.norm(n)
+    across = v @ n - offset
+    inplane = v - np.outer(v @ n, n)
+    inplane -= inplane.mean(0)
+    _, _, vt = np.linalg.svd(inplane, full_matrices=False)
+    length, other = inplane @ vt[0], inplane @ vt[1]
+    lo, hi = length.min(), length.max()
+    mid = 0.5 * (lo + hi)
+    slab = np.abs(length - mid) <= 0.5 * WIDTH_SLAB * (hi - lo)
+    if slab.sum() < 3:
+        return float("nan")
+    return float(np.ptp(across[slab]) / max(np.ptp(other[slab]), 1e-12))

@@ -11,7 +11,15 @@ import trimesh
 from eval_scene import cam_from_world, rot, two_box_sequence
 
 from s3o_warp.evaluation.shape import Similarity, frame_similarities, sample_surface, sample_surface_faces, shape_metrics
-from s3o_warp.evaluation.views import body_axes, novel_view_iou, roughness, silhouette, surface_quality
+from s3o_warp.evaluation.views import (
+    body_axes,
+    body_width_ratio,
+    mesh_smoothness,
+    novel_view_iou,
+    roughness,
+    silhouette,
+    surface_quality,
+)
 
 IDENTITY = Similarity(1.0, np.eye(3), np.zeros(3))
 
@@ -109,3 +117,23 @@ def test_surface_quality_of_the_truth_and_of_a_bumpy_copy():
     assert b["fscore"]["1%"] < b["fscore"]["2%"] < 1.0
     assert b["normal_consistency"] < 0.95 and b["roughness"]["pred"] > b["roughness"]["truth"] == 0.0
     assert math.isfinite(b["normal_consistency"])
+
+
+def test_mesh_smoothness_of_a_cube_against_its_edges():
+    """A triangulated cube: 12 of its 18 interior edges are 90-degree folds, 6 are flat diagonals."""
+    m = trimesh.creation.box()
+    got = mesh_smoothness(m.vertices, m.faces)
+    assert got["roughness"] == pytest.approx(12 / 18)
+    assert got["normal_consistency"] == pytest.approx(6 / 18, abs=1e-12)
+    flat = trimesh.creation.icosphere(3)
+    assert mesh_smoothness(flat.vertices, flat.faces)["normal_consistency"] > 0.99
+
+
+def test_body_width_ratio_of_an_ellipsoid_and_its_cut_out():
+    """An ellipsoid 4 long, 1 high and 0.6 wide across the plane z = 0: the middle slab is about 0.6 / 1 across; the
+    same flattened onto the plane is a cut-out (0)."""
+    m = trimesh.creation.icosphere(4)
+    v = m.vertices * np.array([2.0, 0.5, 0.3])
+    assert body_width_ratio(v, np.array([0.0, 0.0, 1.0])) == pytest.approx(0.6, abs=0.03)
+    assert body_width_ratio(v + [0, 0, 5.0], np.array([0.0, 0.0, 2.0]), 5.0) == pytest.approx(0.6, abs=0.03)
+    assert body_width_ratio(v * [1, 1, 0], np.array([0.0, 0.0, 1.0])) == 0.0
