@@ -248,6 +248,10 @@ def _one_line(e: BaseException) -> str:
 def fit_one(item: Item, cfg: Config, runs: str, batch: str, cpus: float) -> dict:
     """Run one fit into ``runs/<item.run>`` (resuming from its checkpoint when there is one) and return its row.
     The fit's errors become the row's status and error; only a dying worker escapes (Ray retries the task)."""
+    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        # SIGINT is how ray.cancel stops a running task (it interrupts the worker's main thread), also in a worker
+        # that inherited it ignored (a cluster started under nohup ... &): the fit checkpoints and stops on it
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     run = Path(runs) / item.run
     run.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(max(1, int(cpus)))

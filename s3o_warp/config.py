@@ -1,9 +1,9 @@
 """Every setting a user may change, in one dataclass tree, with its default, its type and its range.
 
 Precedence: defaults < preset < ``--config`` TOML < ``--set`` flags. Every field has a docstring (the string under
-it). Choices are ``Literal``; numeric ranges are ``Annotated[..., Bounds(...)]``. :func:`check` refuses a wrong
-type, choice, range or combination in one line that names the key, and runs before any work of a fit (and at the
-end of :func:`make_config`). This module imports nothing of the method.
+it). Choices are ``Literal``; numeric ranges are ``Annotated[..., Bounds(...)]`` (every number has one; inf and nan
+are in none). :func:`check` refuses a wrong type, choice, range or combination in one line that names the key, and
+runs before any work of a fit (and at the end of :func:`make_config`). This module imports nothing of the method.
 """
 
 from __future__ import annotations
@@ -24,7 +24,8 @@ from s3o_warp.errors import ConfigError
 
 @dataclass(frozen=True)
 class Bounds:
-    """The range of a numeric setting: ``lo <= x`` (``lo < x`` when ``lo_open``), likewise ``x <= hi``."""
+    """The range of a numeric setting: ``lo <= x`` (``lo < x`` when ``lo_open``), likewise ``x <= hi``; never inf or
+    nan."""
 
     lo: float | None = None
     hi: float | None = None
@@ -32,36 +33,43 @@ class Bounds:
     hi_open: bool = False
 
     def holds(self, x) -> bool:
-        if math.isnan(x):
+        if not math.isfinite(x):
             return False
         if self.lo is not None and (x <= self.lo if self.lo_open else x < self.lo):
             return False
         return self.hi is None or (x < self.hi if self.hi_open else x <= self.hi)
 
     def __str__(self) -> str:
-        lo = "" if self.lo is None else f"{'>' if self.lo_open else '>='} {self.lo:g}"
-        hi = "" if self.hi is None else f"{'<' if self.hi_open else '<='} {self.hi:g}"
+        def num(x):
+            return str(int(x)) if float(x).is_integer() else f"{x:g}"
+
+        lo = "" if self.lo is None else f"{'>' if self.lo_open else '>='} {num(self.lo)}"
+        hi = "" if self.hi is None else f"{'<' if self.hi_open else '<='} {num(self.hi)}"
         return " and ".join(s for s in (lo, hi) if s)
 
 
 NONNEG = Bounds(0)
 POSITIVE = Bounds(0, lo_open=True)
 COUNT = Bounds(1)
+TURN_RATE = Bounds(-30, 30)
+"""Camera turn rates about the object, degrees per frame: a turn of 30 degrees between frames leaves little for the
+optical flow to follow."""
 
 
 @dataclass
 class DataConfig:
     """How a sequence is read, cropped and given optical flow (``s3o_warp.data.sequence``)."""
 
-    object_id: Annotated[int, NONNEG] | None = None
-    """For palette (multi-object) masks such as DAVIS-2017: the object's palette index; None = any non-zero / > 127."""
-    crop_size: Annotated[int, Bounds(16)] = 256
+    object_id: Annotated[int, Bounds(0, 65535)] | None = None
+    """For palette (multi-object) masks such as DAVIS-2017: the object's palette index (or a 16-bit label mask's
+    value); None = any non-zero / > 127."""
+    crop_size: Annotated[int, Bounds(16, 4096)] = 256
     """Working resolution: each frame's square crop is resized to crop_size x crop_size pixels."""
-    crop_scale: Annotated[float, Bounds(1)] = 1.2
+    crop_scale: Annotated[float, Bounds(1, 10)] = 1.2
     """Side of the square crop as a multiple of the mask bounding box's longer side."""
     flow_preset: Literal["ultrafast", "fast", "medium"] = "medium"
     """OpenCV DIS optical-flow preset: ultrafast, fast or medium."""
-    fps: Annotated[float, POSITIVE] = 30.0
+    fps: Annotated[float, Bounds(0, 1000, lo_open=True)] = 30.0
     """Frame rate of image-folder sequences (DAVIS included); a video file's own frame rate wins when it has one."""
     mask_threshold: Annotated[int, Bounds(0, 254)] = 127
     """Grey-level and RGB masks: foreground = value > mask_threshold (0-255 scale)."""
@@ -76,7 +84,7 @@ class DataConfig:
 class CoarseConfig:
     """Phase 1 (paper 3.2): 2D skeleton of the canonical frame, lift to ellipsoids, coarse shape fit."""
 
-    target_vertices: Annotated[int, Bounds(100)] = 1200
+    target_vertices: Annotated[int, Bounds(100, 100_000)] = 1200
     """Vertex count of the initial mesh (the union of the lifted ellipsoids; its marching-cubes resolution is searched
     for it), and of every resampling unless motion.resample_vertices is set (>= 100)."""
     fov_degrees: Annotated[float, Bounds(0, 180, lo_open=True, hi_open=True)] = 45.0
@@ -111,8 +119,8 @@ class MotionConfig:
     """Root-rotation hypotheses tried at the start of the warm-up (1 = off): each assumes the camera turns
     about the object's vertical axis at a constant rate; a short fit of the root and camera alone scores each by
     its optical-flow term over every frame, and the best is kept."""
-    hypothesis_max_rate: Annotated[float, NONNEG] = 3.0
-    """Largest turn rate of the hypotheses, degrees per frame (rates spread evenly in +-this, 0 included)."""
+    hypothesis_max_rate: Annotated[float, Bounds(0, TURN_RATE.hi)] = 3.0
+    """Largest turn rate of the hypotheses, degrees per frame (rates spread evenly in +-this, 0 included; <= 30)."""
     hypothesis_steps: Annotated[int, NONNEG] = 10
     """Warm-up steps spent scoring each hypothesis before the best three go on for 60 more and are ranked again (10
     and 30 chose the same rate, and the same three finalists, on the Fox, horse and DAVIS dog)."""
@@ -120,8 +128,9 @@ class MotionConfig:
     """Even resampling of the canonical mesh (paper B) every this many epochs of the joint phase; 0 = never."""
     resample_vertices: Annotated[int, NONNEG] = 0
     """Vertex count the resampled mesh aims at; 0 = the coarse mesh's count."""
-    turn_rate: float | None = None
-    """Known camera turn rate about the object's vertical axis, degrees per frame: used as is, no hypotheses scored."""
+    turn_rate: Annotated[float, TURN_RATE] | None = None
+    """Known camera turn rate about the object's vertical axis, degrees per frame (-30 to 30): used as is, no
+    hypotheses scored."""
     steps: Annotated[int, NONNEG] = 1200
     """Steps of the joint shape + motion + camera phase after the warm-up."""
     lr_motion: Annotated[float, NONNEG] = 0.01
@@ -240,8 +249,8 @@ class Config:
     motion: MotionConfig = field(default_factory=MotionConfig)
     skeleton: SkeletonConfig = field(default_factory=SkeletonConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
-    seed: Annotated[int, NONNEG] = 0
-    """Seed for every random choice."""
+    seed: Annotated[int, Bounds(0, 2**32 - 1)] = 0
+    """Seed for every random choice (numpy's seeds end at 2**32 - 1)."""
     repeatable: bool = True
     """On the CPU, run torch's deterministic algorithms during the fit so one seed gives the same run every time.
     Without them the backward of indexing (``index_put_`` accumulating) adds in thread order and a fit drifts
@@ -340,6 +349,8 @@ def _coerce(key: str, current, value, hint):
     except (TypeError, ValueError):
         raise ConfigError(f"config key '{key}' must be {base.__name__}, got {value!r} ({type(value).__name__}); "
                           f"e.g. {key}={current!r}") from None
+    if base is float and not math.isfinite(value):
+        raise ConfigError(f"config key '{key}' must be a finite number, got {value!r}")
     if choices is not None and value not in choices:
         raise ConfigError(f"config key '{key}' must be one of {', '.join(map(repr, choices))}, got {value!r}")
     if bounds is not None and not bounds.holds(value):

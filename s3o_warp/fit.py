@@ -60,9 +60,10 @@ from s3o_warp.run.branch import BRANCH_LOG, branch_checkpoint, link_cache, save_
 from s3o_warp.run.checkpoint import (
     CHECKPOINT_VERSION,
     check_version,
-    latest_checkpoint,
+    load_newest,
     save_step,
 )
+from s3o_warp.run.resume import apply_changed_settings
 from s3o_warp.skeleton.mstep import (
     SkeletonState,
     m_step,
@@ -505,8 +506,10 @@ class Fitter:
         m.bone_aa = torch.nn.Parameter(torch.zeros(T, B, 3, **kw))
         m.bone_t = torch.nn.Parameter(torch.zeros(T, B, 3, **kw))
 
-    def load_checkpoint(self, path: Path) -> None:
-        st = torch.load(path, map_location=self.device, weights_only=False)
+    def load_checkpoint(self, path: Path, st: dict | None = None) -> None:
+        """Continue from the checkpoint at ``path`` (``st``: its state, when already read)."""
+        if st is None:
+            st = torch.load(path, map_location=self.device, weights_only=False)
         check_version(st, f"checkpoint {path}", "start a fresh run (drop --resume or use another --out)")
         if st.get("sequence") != self.data.name or st.get("num_frames") != self.data.num_frames:
             raise InputError(
@@ -586,7 +589,9 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
     ``branch_from``: a finished or running fit of the same sequence whose settings differ from ``cfg`` only in
     ``skeleton.t_o``, ``t_u`` or ``t_d`` (:data:`s3o_warp.run.branch.BRANCH_MAY_DIFFER`: read only from the branch on); the fit starts from its ``checkpoints/branch.pt`` (the state just
     before the first merge) and its cached flow, so a t_o study pays for the shared part once (the rest of the run directory is this fit's own). With
-    ``resume`` a checkpoint of ``out_dir`` itself comes first.
+    ``resume`` a checkpoint of ``out_dir`` itself comes first: the newest that can be read
+    (:func:`s3o_warp.run.checkpoint.load_newest`), with the settings changed since it applied or refused before any
+    work (:mod:`s3o_warp.run.resume`).
     """
     check(cfg)  # every setting, before anything is read or written
     out_dir = Path(out_dir)
@@ -597,6 +602,9 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
     with interrupt.on_signals():  # Ctrl-C, SIGTERM: every long loop below stops at its next check
         torch.manual_seed(cfg.seed)
         np.random.seed(cfg.seed)
+        resumed = load_newest(out_dir, device) if resume else None  # (path, state); damaged ones passed over
+        if resumed is not None:
+            apply_changed_settings(resumed[1], cfg, resumed[0])  # one that cannot take effect: refused here
         data = prepare_data(Path(sequence_dir), cfg, out_dir, device, masks=masks, name=name)  # validates input first
         try:
             out_dir.mkdir(parents=True, exist_ok=True)
@@ -606,7 +614,7 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
         with repeatable(cfg.repeatable and device.type == "cpu"):
             coarse_res = coarse_model(data, cfg)
             fitter = Fitter(data, coarse_res, cfg, out_dir, device)
-            ck = latest_checkpoint(out_dir) if resume else None
+            ck, st = resumed or (None, None)
             if resume and ck is None and branch is None:
                 log.warning("--resume: no checkpoint in %s, starting from the beginning", out_dir / "checkpoints")
             if ck is None and branch is not None:
@@ -614,7 +622,7 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
                 copy_file(branch.with_name(BRANCH_LOG), out_dir / "log.jsonl")
             if ck is not None:
                 log.info("resuming from %s", ck)
-                fitter.load_checkpoint(ck)
+                fitter.load_checkpoint(ck, st)
             elif (out_dir / "log.jsonl").exists():
                 (out_dir / "log.jsonl").unlink()
             if fitter.phase != "done":

@@ -6,6 +6,10 @@ warm-up and joint steps, resampling, export, renders) checks :func:`requested` o
 through :class:`Interrupted` at a point from which the work can continue: the fit writes a checkpoint there
 first, so ``--resume`` ends where an uninterrupted run ends. Every item is shorter than two seconds, so the
 stop is that prompt.
+
+A signal the process was started ignoring stays ignored (``nohup s3o-fit ... &``: the shell ignores SIGINT in a
+background job, and the job keeps ignoring Ctrl-C of its terminal; SIGTERM still stops it). A stop lasts no longer
+than the outermost block: the flag is cleared when it begins and when it ends.
 """
 
 from __future__ import annotations
@@ -18,7 +22,8 @@ import threading
 log = logging.getLogger(__name__)
 
 _flag = threading.Event()
-_depth = 0
+_depth = 0  # open on_signals blocks, in every thread
+_lock = threading.Lock()
 
 
 class Interrupted(Exception):
@@ -31,7 +36,8 @@ def request() -> None:
 
 
 def requested() -> bool:
-    """Has a stop been asked for since the outermost :func:`on_signals` began?"""
+    """Has a stop been asked for since the outermost :func:`on_signals` began (or, outside one, since the last
+    ended)?"""
     return _flag.is_set()
 
 
@@ -50,21 +56,26 @@ def _handle(signum, frame) -> None:
 
 @contextlib.contextmanager
 def on_signals():
-    """SIGINT and SIGTERM request a stop inside the block (the main thread only; elsewhere a no-op). The flag is
-    cleared when the outermost block begins, and the previous handlers come back when it ends."""
+    """SIGINT and SIGTERM request a stop inside the block (handlers are set in the main thread only); one found
+    ignored (``SIG_IGN``) stays ignored. The stop flag is cleared when the outermost block (of any thread) begins and
+    when it ends, so a stop never outlives the work it stopped; the previous handlers come back when the block
+    ends."""
     global _depth
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    if _depth == 0:
-        _flag.clear()
-    _depth += 1
-    for sig in old:
-        signal.signal(sig, _handle)
+    main = threading.current_thread() is threading.main_thread()
+    old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)} if main else {}
+    with _lock:
+        if _depth == 0:
+            _flag.clear()
+        _depth += 1
     try:
+        for sig, h in old.items():
+            if h is not signal.SIG_IGN:
+                signal.signal(sig, _handle)
         yield
     finally:
-        _depth -= 1
         for sig, h in old.items():
             signal.signal(sig, h)
+        with _lock:
+            _depth -= 1
+            if _depth == 0:
+                _flag.clear()

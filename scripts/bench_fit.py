@@ -6,7 +6,8 @@
 
 Cases: ``quadruped`` (the built-in default shot, the README's main command), ``fox`` (Khronos Fox Walk,
 48 frames, 320x240, 90-degree orbit), ``fox120`` (the same clip with a 120-degree orbit), ``horse`` (Quaternius Horse Walk, 48 frames, 320x240, 120-degree
-orbit), ``robot`` (three.js's RobotExpressive biped, Walking, 48 frames, 320x240, 120-degree orbit), ``robot-dance``
+orbit), ``deer`` (Quaternius Deer Walk) and ``husky`` (Quaternius Husky Gallop, looped), both rendered as the horse is,
+``robot`` (three.js's RobotExpressive biped, Walking, 48 frames, 320x240, 120-degree orbit), ``robot-dance``
 (the same robot's Dance seen from the front: a 60-degree orbit about its front, arms away from the body), ``lizard``
 (the built-in lizard's crawl, 48 frames, 320x240, 120-degree orbit from 30 degrees up), ``cows`` / ``dog``
 (DAVIS with BADJA keypoints), ``dance-twirl`` (DAVIS, a dancer; no keypoints, so no PCK-T), ``cows-box`` /
@@ -57,6 +58,9 @@ SYNTH = {
     "fox": dict(source="gltf/khronos_Fox.glb", clip="Walk", frames=48, fps=30.0, size=(320, 240), azim=(-45.0, 45.0), elev=15.0),
     "fox120": dict(source="gltf/khronos_Fox.glb", clip="Walk", frames=48, fps=30.0, size=(320, 240), azim=(-60.0, 60.0), elev=15.0),
     "horse": dict(source="gltf/quaternius_Horse.glb", clip="Walk", frames=48, fps=30.0, size=(320, 240), azim=(-60.0, 60.0), elev=15.0),
+    "deer": dict(source="gltf/quaternius_Deer.glb", clip="Walk", frames=48, fps=30.0, size=(320, 240), azim=(-60.0, 60.0), elev=15.0),
+    "husky": dict(source="gltf/quaternius_Husky.glb", clip="Gallop", frames=48, fps=30.0, size=(320, 240), azim=(-60.0, 60.0),
+                  elev=15.0),
     "robot": dict(source="gltf/threejs_RobotExpressive.glb", clip="Walking", frames=48, fps=30.0, size=(320, 240),
                   azim=(-60.0, 60.0), elev=15.0),
     "robot-dance": dict(source="gltf/threejs_RobotExpressive.glb", clip="Dance", frames=48, fps=30.0, size=(320, 240),

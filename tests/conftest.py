@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 from pathlib import Path
 from unittest import mock
 
@@ -55,6 +56,18 @@ def shared_data() -> Path:
 def _seed():
     torch.manual_seed(0)
     yield
+
+
+@pytest.fixture
+def sigint_raises():
+    """SIGINT raises KeyboardInterrupt in the test (Python's default), however the suite was started (``nohup pytest
+    &`` starts it ignored: SIG_IGN); the handler found is restored after. For tests that send themselves SIGINT."""
+    found = signal.getsignal(signal.SIGINT)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield found
+    finally:
+        signal.signal(signal.SIGINT, found)
 
 
 def smoke_config(**over):

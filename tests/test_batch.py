@@ -247,7 +247,9 @@ def test_the_same_command_on_a_cluster_stops_and_resumes(sequences, tmp_path):
         runs = tmp_path / "runs"
         manifest = _manifest(tmp_path, json.dumps([{"path": str(sequences / "s2"), "motion.steps": 100}]), "m.json")
         cmd = [str(cli), manifest, "--out", str(runs), "--address", f"127.0.0.1:{port}", *SMOKE]
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+        # SIGINT as from a terminal, even where this suite runs with it ignored (nohup ... &: the child inherits it)
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         deadline = time.monotonic() + 300
         ck = runs / "s2" / "checkpoints"
         while proc.poll() is None and time.monotonic() < deadline:

@@ -90,10 +90,48 @@ def test_every_choice_and_range_is_refused_naming_the_key(key, value):
         make_config("default", overrides=[f"{key}={value}"])
 
 
+def _numeric_settings():
+    from s3o_warp.config import _parts, _settings
+
+    return [(key, _parts(hint)) for key, _owner, _name, hint in _settings(Config())
+            if _parts(hint)[0] in (int, float)]
+
+
+def test_every_numeric_setting_has_a_range():
+    assert [key for key, (_base, _choices, bounds, _optional) in _numeric_settings() if bounds is None] == []
+
+
+@pytest.mark.parametrize("key", [key for key, parts in _numeric_settings() if parts[0] is float])
+def test_inf_and_nan_are_refused_for_every_float_setting(key, tmp_path):
+    for value in ("inf", "-inf", "nan"):
+        with pytest.raises(ConfigError, match=rf"config key '{key}' must be a finite number, got {value}"):
+            make_config("default", overrides=[f"{key}={value}"])
+    section, name = key.split(".") if "." in key else ("", key)
+    (tmp_path / "c.toml").write_text(f"[{section}]\n{name} = inf\n" if section else f"{name} = inf\n")
+    with pytest.raises(ConfigError, match=rf"'{key}' must be a finite number"):
+        make_config("default", tmp_path / "c.toml")
+
+
+@pytest.mark.parametrize("override, match", [
+    ("motion.turn_rate=-45", r"'motion.turn_rate' must be >= -30 and <= 30, got -45.0"),
+    ("motion.hypothesis_max_rate=90", r"'motion.hypothesis_max_rate' must be >= 0 and <= 30"),
+    ("motion.lr_shape=-0.001", r"'motion.lr_shape' must be >= 0"),
+    ("seed=4294967296", r"'seed' must be >= 0 and <= 4294967295"),
+])
+def test_a_value_no_user_means_is_refused(override, match):
+    with pytest.raises(ConfigError, match=match):
+        make_config("default", overrides=[override])
+    assert make_config("default", overrides=["motion.turn_rate=-2.5", "motion.turn_rate=none"]).motion.turn_rate is None
+
+
 def test_a_config_changed_in_code_is_checked_too():
     cfg = make_config("default")
     cfg.motion.rigidity = "elastic"
     with pytest.raises(ConfigError, match="'motion.rigidity' must be one of 'dynamic', 'arap', 'none'"):
+        check(cfg)
+    cfg = make_config("default")
+    cfg.motion.lr_shape = float("nan")
+    with pytest.raises(ConfigError, match="'motion.lr_shape' must be a finite number, got nan"):
         check(cfg)
     cfg = make_config("default")
     cfg.motion.resample_vertices = 5

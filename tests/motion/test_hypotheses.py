@@ -98,7 +98,7 @@ def test_known_turn_rate_skips_the_scoring(tiny_sequence, tmp_path):
 
 
 def test_a_signal_during_the_hypotheses_stops_within_2_s_and_resume_ends_where_an_uninterrupted_fit_ends(
-        tiny_sequence, tmp_path, monkeypatch):
+        tiny_sequence, tmp_path, monkeypatch, sigint_raises):
     """SIGINT once the search has begun (seen through its progress bar and its scoring): the fit stops with a
     checkpoint holding the search, in the first round's steps, then (resumed) in a rate's scoring, then in the
     second round. Resumed each time, the fit chooses the same turn and ends with the same parameters as an
@@ -148,7 +148,7 @@ def test_a_signal_during_the_hypotheses_stops_within_2_s_and_resume_ends_where_a
         assert time.perf_counter() - sent[k] < 2.0
         st = torch.load(latest_checkpoint(b), weights_only=False)
         assert (st["phase"], st["step"], st["hypotheses"]["steps_done"]) == ("warmup", 0, done)
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handlers are back
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handlers are back (sigint_raises')
     fit(tiny_sequence, b, cfg, torch.device("cpu"), resume=True)
 
     def chosen(run):
