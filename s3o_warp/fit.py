@@ -197,7 +197,7 @@ class Fitter:
                 {"params": [m.color_logits], "lr": mc.lr_color, "name": "color"},
                 {"params": [m.bone_centers, m.bone_quat, m.bone_log_scales], "lr": mc.lr_bones, "name": "bones"},
             ]
-        if self.phase == "joint" and mc.shape_smoothing > 0:
+        if self.phase == "joint":  # Laplacian-preconditioned shape steps with a uniform second moment
             return FitAdam(groups, m.faces, mc.shape_smoothing)
         return torch.optim.Adam(groups)
 

@@ -256,7 +256,8 @@ def views_figures(metrics: dict) -> dict:
     v, s = metrics["views"], metrics["surface"]
     return {"novel_iou": {k: {"mean": v[k]["mean"], **v[k]["per_view"]} for k in ("sequence", "framewise")},
             "fscore_framewise": s["fscore"], "normal_consistency": s["normal_consistency"],
-            "roughness": {k: s["roughness"][k] for k in ("pred", "truth")}}
+            "roughness": {k: s["roughness"][k] for k in ("pred", "truth")},
+            **({"width_ratio": {k: v["width_ratio"][k] for k in ("pred", "truth")}} if "width_ratio" in v else {})}
 
 
 def _same_run(a: dict, b: dict) -> bool:

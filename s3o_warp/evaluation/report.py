@@ -31,7 +31,7 @@ from s3o_warp.evaluation.loaders import (
     load_predictions,
 )
 from s3o_warp.evaluation.shape import bbox_diagonal, frame_similarities, shape_metrics
-from s3o_warp.evaluation.views import novel_view_iou, surface_quality
+from s3o_warp.evaluation.views import novel_view_iou, surface_quality, width_ratios
 from s3o_warp.evaluation.skeleton import (
     empty_bones,
     joints_inside,
@@ -216,7 +216,8 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
             c2w = gt.cam_from_world[gi]
             result["views"] = {
                 "sequence": novel_view_iou(pred.verts_cam[pi], pred.faces, gt.verts[gi], gt.faces, c2w, [sim] * len(pi)),
-                "framewise": novel_view_iou(pred.verts_cam[pi], pred.faces, gt.verts[gi], gt.faces, c2w, sims)}
+                "framewise": novel_view_iou(pred.verts_cam[pi], pred.faces, gt.verts[gi], gt.faces, c2w, sims),
+                "width_ratio": width_ratios(pred.verts_cam[pi], gt.verts[gi], c2w, sims)}
         else:
             skipped["views"] = f"{gt.source} has no cam_from_world (the model's up axis)"
         result["surface"] = surface_quality(pred.verts_cam[pi], pred.faces, gt.verts[gi], gt.faces, sims, seed=seed)
@@ -295,6 +296,10 @@ def format_table(metrics: dict) -> str:
             m = metrics["views"][k]
             rows.append((f"novel-view IoU ({k})", f(m["mean"], ".4f"),
                          ", ".join(f"{v} {x:.3f}" for v, x in m["per_view"].items()) + f"; {what}"))
+        if "width_ratio" in metrics["views"]:
+            w = metrics["views"]["width_ratio"]
+            rows.append(("width ratio", f(w["pred"], ".3f"), f"truth {f(w['truth'], '.3f')}; the middle of the body, "
+                         "across its side axis over along its other, each frame aligned alone"))
     if "surface" in metrics:
         m = metrics["surface"]
         rows.append(("F-score (each frame)", " / ".join(f"{x:.3f}" for x in m["fscore"].values()),

@@ -206,3 +206,23 @@ def body_width_ratio(verts: np.ndarray, normal: np.ndarray, offset: float = 0.0)
     if slab.sum() < 3:
         return float("nan")
     return float(np.ptp(across[slab]) / max(np.ptp(other[slab]), 1e-12))
+
+
+def width_ratios(pred_verts: np.ndarray, gt_verts: np.ndarray, cam_from_world: np.ndarray, sims: list[Similarity],
+                 frames: np.ndarray | None = None, num_frames: int = 8) -> dict:
+    """:func:`body_width_ratio` of the aligned prediction and of the ground truth across the truth's vertical plane
+    along the body (normal: its ``side`` axis, :func:`body_axes`), mean over ``num_frames`` frames: a prediction
+    flattened into a cut-out of its side view scores far below the truth.
+
+    Returns:
+        ``{"pred", "truth", "frames"}``.
+    """
+    T = gt_verts.shape[0]
+    if frames is None:
+        frames = np.unique(np.linspace(0, T - 1, min(num_frames, T)).round().astype(int))
+    side = body_axes(gt_verts, cam_from_world)["front"][:, 0]  # (T, 3) the body's side axis in camera space
+    pred, truth = [], []
+    for t in frames:
+        pred.append(body_width_ratio(sims[t](pred_verts[t]), side[t]))
+        truth.append(body_width_ratio(gt_verts[t], side[t]))
+    return {"pred": float(np.nanmean(pred)), "truth": float(np.nanmean(truth)), "frames": [int(t) for t in frames]}

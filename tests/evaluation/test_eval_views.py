@@ -19,6 +19,7 @@ from s3o_warp.evaluation.views import (
     roughness,
     silhouette,
     surface_quality,
+    width_ratios,
 )
 
 IDENTITY = Similarity(1.0, np.eye(3), np.zeros(3))
@@ -137,3 +138,17 @@ def test_body_width_ratio_of_an_ellipsoid_and_its_cut_out():
     assert body_width_ratio(v, np.array([0.0, 0.0, 1.0])) == pytest.approx(0.6, abs=0.03)
     assert body_width_ratio(v + [0, 0, 5.0], np.array([0.0, 0.0, 2.0]), 5.0) == pytest.approx(0.6, abs=0.03)
     assert body_width_ratio(v * [1, 1, 0], np.array([0.0, 0.0, 1.0])) == 0.0
+
+
+def test_width_ratios_tell_a_cut_out_from_the_body():
+    """The truth against itself scores its own ratio; flattened across its side axis it scores near 0."""
+    T = 3
+    m = trimesh.creation.icosphere(3)
+    body = m.vertices * np.array([2.0, 0.6, 0.5])  # long along world x, 0.6 up (y), 0.5 to the side (z)
+    c2w = np.stack([np.eye(4)] * T)
+    c2w[:, 2, 3] = 5.0
+    cam = np.stack([body + [0, 0, 5.0]] * T)
+    flat = np.stack([body * [1, 1, 0.05] + [0, 0, 5.0]] * T)
+    same = width_ratios(cam, cam, c2w, [IDENTITY] * T)
+    assert same["pred"] == pytest.approx(same["truth"]) and same["truth"] == pytest.approx(0.5 / 0.6, abs=0.05)
+    assert width_ratios(flat, cam, c2w, [IDENTITY] * T)["pred"] < 0.1
