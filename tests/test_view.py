@@ -149,12 +149,29 @@ def test_page_draws_the_mesh_in_headless_chromium_and_looks_through_a_camera(run
             srv.slider.value = 2
             srv.look_through(client)
             wxyz, pos, fov, _ = srv.camera_pose(2)
-            np.testing.assert_allclose(client.camera.position, pos, atol=1e-6)
-            assert min(np.abs(client.camera.wxyz - wxyz).max(), np.abs(client.camera.wxyz + wxyz).max()) < 1e-6
-            assert client.camera.fov == pytest.approx(fov)
-            assert srv.show_backdrop.value  # the frame behind the mesh
+            assert _camera_reaches(client, pos, wxyz, fov), "the page's view did not become frame 2's fitted camera"
+            assert srv.show_backdrop.value and not srv.show_cameras.value  # the frame behind the mesh, no frusta
+            assert srv.backdrop is not None and srv.backdrop.visible
+            srv.follow.value = True  # the view follows the fitted camera from frame to frame
+            srv.slider.value = 4
+            wxyz, pos, fov, _ = srv.camera_pose(4)
+            assert _camera_reaches(client, pos, wxyz, fov), "the page's view did not follow to frame 4's camera"
     finally:
         srv.close()
+
+
+def _camera_reaches(client, pos, wxyz, fov, timeout: float = 30.0) -> bool:
+    """Whether the page reports its view at the camera (position, orientation up to sign, vertical fov) within
+    ``timeout`` seconds (a report it sent before it took the new view may arrive first)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        cam = client.camera
+        q = np.asarray(cam.wxyz)
+        if (np.abs(np.asarray(cam.position) - pos).max() < 1e-4 and min(np.abs(q - wxyz).max(), np.abs(q + wxyz).max())
+                < 1e-4 and abs(cam.fov - fov) < 1e-4):
+            return True
+        time.sleep(0.1)
+    return False
 
 
 def test_a_running_fit_shows_its_checkpoint_and_follows_a_newer_one(run_dir, tmp_path):
@@ -222,6 +239,7 @@ def test_bad_input_is_one_line_and_exit_2(run_dir, tmp_path, capsys):
     _one_line_exit_2(capsys, [str(broken)], "motion.npz")
     with pytest.raises(InputError, match="motion.npz"):
         load_view(broken)
+    _one_line_exit_2(capsys, [str(run_dir), "--sequence", str(tmp_path / "frames")], "--sequence")
 
 
 def test_without_viser_one_line_names_the_install(run_dir, monkeypatch, capsys):

@@ -1,6 +1,6 @@
 """The ``s3o-view`` console script (same as ``python scripts/view.py``): a local web page showing one fit.
 
-    s3o-view RUN_DIR [--port N] [--host ADDR] [--sequence PATH] [--surface NAME]
+    s3o-view RUN_DIR [--port N] [--host ADDR] [--sequence PATH] [--surface NAME] [--poll S]
 
 The page (viser, ``pip install 's3o-warp[view]'``) shows the fitted mesh playing the clip's motion with its skeleton,
 the fitted camera of every frame with that frame's picture, and the run's figures and settings
@@ -18,8 +18,6 @@ import threading
 
 from s3o_warp.errors import InputError
 from s3o_warp.view.run import SURFACES
-
-log = logging.getLogger("s3o_warp")
 
 INSTALL_HINT = "pip install 's3o-warp[view]'"
 
@@ -43,6 +41,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(message)s")
+    # a browser's unused pre-connections end in a logged traceback each; the page does not depend on them
+    logging.getLogger("websockets.server").setLevel(logging.DEBUG if args.verbose else logging.CRITICAL)
     try:
         import viser  # noqa: F401 - the optional dependency, checked before anything else
     except ImportError as e:
@@ -62,8 +62,10 @@ def main(argv: list[str] | None = None) -> int:
         threading.Event().wait()
     except KeyboardInterrupt:
         pass
-    finally:
+    try:
         server.close()
+    except KeyboardInterrupt:  # a second Ctrl-C: leave without waiting
+        pass
     return 0
 
 

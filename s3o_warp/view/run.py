@@ -33,6 +33,16 @@ SURFACES = ("colours", "plain", "see-through", "hidden")
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".webp", ".tif", ".tiff")
 
+_warned: set = set()
+
+
+def _warn_once(msg: str, *args) -> None:
+    """A warning logged once per process (the viewer reads a running fit again and again)."""
+    text = msg % args
+    if text not in _warned:
+        _warned.add(text)
+        log.warning(text)
+
 
 @dataclass
 class FitView:
@@ -177,7 +187,7 @@ def load_view(run, sequence=None) -> FitView:
     seq = find_sequence(run, metrics, sequence)
     if source.name != "motion.npz":
         try:
-            arrays, skel, label = _read_checkpoint(run, seq)
+            arrays, skel, label, source = _read_checkpoint(run, seq)
             metrics = None  # a metrics.json there belongs to an earlier fit
         except InputError as e:
             if not (run / "motion.npz").is_file():
@@ -192,8 +202,8 @@ def load_view(run, sequence=None) -> FitView:
     except (ValueError, KeyError, IndexError, TypeError) as e:  # arrays or a skeleton of the wrong shape
         raise InputError(f"{source}: malformed ({type(e).__name__}: {e}); re-run the fit to write it again") from None
     view.metrics, view.config_text, view.sequence = metrics, config_text, seq
-    log.info("%s: %s, %d frames, %d vertices, %d bones", run, label, view.num_frames, view.verts.shape[1],
-             view.centres.shape[1])
+    log.debug("%s: %s, %d frames, %d vertices, %d bones", run, label, view.num_frames, view.verts.shape[1],
+              view.centres.shape[1])
     return view
 
 
@@ -268,17 +278,10 @@ def _view_from_arrays(run: Path, source: Path, label: str, a: dict, skel: dict) 
 
 
 # ------------------------------------------------------------------------------------------ a running fit
-def _read_checkpoint(run: Path, seq: Path | None) -> tuple[dict, dict, str]:
-    """``motion.npz``-like arrays, a ``skeleton.json``-like dict and a label of the run's newest readable checkpoint,
-    posed by the package's own model and rig code."""
-    from types import SimpleNamespace
-
-    import torch
-
-    from s3o_warp.model import ModelInit, S3OModel
+def _read_checkpoint(run: Path, seq: Path | None) -> tuple[dict, dict, str, Path]:
+    """``motion.npz``-like arrays, a ``skeleton.json``-like dict, a label and the path of the run's newest readable
+    checkpoint, posed by the package's own model and rig code."""
     from s3o_warp.run.checkpoint import CHECKPOINT_VERSION, load_newest
-    from s3o_warp.run.outputs import rig_from_model
-    from s3o_warp.skeleton.mstep import SkeletonState
 
     found = load_newest(run, map_location="cpu")  # a damaged newest one is passed over, with a warning
     if found is None:
@@ -287,6 +290,33 @@ def _read_checkpoint(run: Path, seq: Path | None) -> tuple[dict, dict, str]:
     if st.get("version") != CHECKPOINT_VERSION:
         raise InputError(f"{path}: written by another version of s3o-warp (checkpoint version {st.get('version')}); "
                          "view a run of this version")
+    try:
+        rig = _rig_of_checkpoint(run, st, seq)
+    except (KeyError, IndexError, RuntimeError, ValueError, TypeError) as e:  # not a state this version wrote
+        raise InputError(f"{path}: cannot be posed ({type(e).__name__}: {e}); wait for the fit's next checkpoint"
+                         ) from None
+    arrays = {"verts_cam": rig.posed_camera(), "faces": rig.faces, "colors": rig.colors, "root": rig.root, "K": rig.K,
+              "bone_motion": rig.bone_motion, "image_size": np.asarray(rig.image_size), "fps": rig.fps,
+              "frame_names": np.asarray(rig.frame_names)}
+    jc = rig.joints_camera()
+    if jc is not None:
+        arrays["joints_cam"] = jc
+    sk = {"world_from_object": rig.world_from_object.tolist(),
+          "bones": [{"centre": c.tolist(), "bind": m.tolist()} for c, m in zip(rig.centres, rig.bind)],
+          "joints": [] if rig.joints is None else [{"bones": [int(a), int(b)]} for a, b in rig.joint_pairs]}
+    return arrays, sk, f"checkpoint {path.name} (no motion.npz yet)", path
+
+
+def _rig_of_checkpoint(run: Path, st: dict, seq: Path | None):
+    """The :class:`s3o_warp.export.rig.Rig` of a checkpoint's state, made as a finished fit makes it."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from s3o_warp.model import ModelInit, S3OModel
+    from s3o_warp.run.outputs import rig_from_model
+    from s3o_warp.skeleton.mstep import SkeletonState
+
     cfg = st["config"]
     sd = st["model"]
     T, B, N = sd["root_t"].shape[0], sd["bone_centers"].shape[0], sd["verts"].shape[0]
@@ -303,8 +333,8 @@ def _read_checkpoint(run: Path, seq: Path | None) -> tuple[dict, dict, str]:
         with torch.no_grad():
             K = model.intrinsics_frame(torch.arange(T)).double()
         size = (int(round(2 * float(K[:, 1, 2].mean()) + 1)), int(round(2 * float(K[:, 0, 2].mean()) + 1)))
-        log.warning("the input frames of %s were not found: frame size taken as %d x %d from the intrinsics", run,
-                    size[1], size[0])
+        _warn_once("the input frames of %s were not found (pass --sequence): frame size taken as %d x %d from the "
+                   "intrinsics", run, size[1], size[0])
     skel = SkeletonState.from_dict(st["skeleton"])
     # rig_from_model reads a Fitter's model, skeleton, data (frame size, rate, names) and skeleton settings
     fitter = SimpleNamespace(
@@ -312,24 +342,16 @@ def _read_checkpoint(run: Path, seq: Path | None) -> tuple[dict, dict, str]:
         data=SimpleNamespace(frame_size=size, fps=float(cfg["data"]["fps"]), frame_names=names),
         cfg=SimpleNamespace(skeleton=SimpleNamespace(t_r=float(cfg["skeleton"]["t_r"]))),
     )
-    rig = rig_from_model(fitter)
-    arrays = {"verts_cam": rig.posed_camera(), "faces": rig.faces, "colors": rig.colors, "root": rig.root, "K": rig.K,
-              "bone_motion": rig.bone_motion, "image_size": np.asarray(rig.image_size), "fps": rig.fps,
-              "frame_names": np.asarray(rig.frame_names)}
-    jc = rig.joints_camera()
-    if jc is not None:
-        arrays["joints_cam"] = jc
-    sk = {"world_from_object": rig.world_from_object.tolist(),
-          "bones": [{"centre": c.tolist(), "bind": m.tolist()} for c, m in zip(rig.centres, rig.bind)],
-          "joints": [] if rig.joints is None else [{"bones": [int(a), int(b)]} for a, b in rig.joint_pairs]}
-    what = "the fit's last checkpoint" if st["phase"] == "done" else f"checkpoint of {st['phase']} step {st['step']}"
-    return arrays, sk, f"{what} ({path.name}; the fit is running or stopped before writing motion.npz)"
+    return rig_from_model(fitter)
 
 
 # ------------------------------------------------------------------------------------------------- frames
 def find_sequence(run: Path, metrics: dict | None, given=None) -> Path | None:
     """Where the input frames are: ``given``, the sequence ``metrics.json`` names, ``run/sequence`` (the built-in
     quadruped's) or the one sequence folder under it (``s3o-fit --box``'s); None when none exists."""
+    if given is not None and not Path(given).exists():
+        raise InputError(f"--sequence {given}: no such file or folder; pass the video or the folder of frames the fit "
+                         "read")
     cands = [Path(given)] if given is not None else []
     if metrics and metrics.get("sequence"):
         cands.append(Path(metrics["sequence"]))
@@ -370,51 +392,89 @@ def frame_list(seq: Path | None, T: int) -> tuple[list[str], tuple[int, int] | N
         return [p.stem for p in files], (im.height, im.width)
 
 
+def _scaled(rgb: np.ndarray, max_side: int) -> np.ndarray:
+    import cv2
+
+    h, w = rgb.shape[:2]
+    s = min(1.0, max_side / max(h, w))
+    if s >= 1.0:
+        return np.ascontiguousarray(rgb)
+    return cv2.resize(rgb, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
+
+
+def _frame_paths(view: FitView) -> list[Path] | None:
+    """The image file of each frame (by name, else in sorted order), or None (a warning says why)."""
+    files = _image_files(view.sequence)
+    by_name = {p.stem: p for p in files}
+    if all(n in by_name for n in view.frame_names):
+        return [by_name[n] for n in view.frame_names]
+    if len(files) == view.num_frames:
+        return files
+    _warn_once("%s holds %d frames, the fit %d: the cameras are drawn without pictures", view.sequence, len(files),
+               view.num_frames)
+    return None
+
+
+def _read_image(path: Path, max_side: int) -> np.ndarray:
+    from PIL import Image
+
+    with Image.open(path) as im:
+        im.draft("RGB", (max_side, max_side))  # JPEG: decode at a fraction of the size
+        im = im.convert("RGB")
+        im.thumbnail((max_side, max_side))
+        return np.asarray(im)
+
+
 def frame_images(view: FitView, max_side: int = 320):
     """Yield ``(t, RGB uint8 image)`` of the input frames, scaled to at most ``max_side`` pixels; nothing when the
     frames are not found or do not match the fit's (a warning says so)."""
     seq = view.sequence
     if seq is None:
-        log.warning("the input frames of %s were not found: the cameras are drawn without pictures", view.run)
+        _warn_once("the input frames of %s were not found (pass --sequence): the cameras are drawn without pictures",
+                   view.run)
         return
-    T = view.num_frames
-    if seq.is_file():
+    if seq.is_file():  # a video: read in order
         import cv2
 
         cap = cv2.VideoCapture(str(seq))
         try:
-            for t in range(T):
+            for t in range(view.num_frames):
                 ok, bgr = cap.read()
                 if not ok:
-                    log.warning("%s ends at frame %d of %d: the later cameras have no picture", seq, t, T)
+                    log.warning("%s ends at frame %d of %d: the later cameras have no picture", seq, t, view.num_frames)
                     return
-                h, w = bgr.shape[:2]
-                s = min(1.0, max_side / max(h, w))
-                small = cv2.resize(bgr, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
-                yield t, np.ascontiguousarray(small[..., ::-1])
+                yield t, _scaled(bgr[..., ::-1], max_side)
         finally:
             cap.release()
         return
-    files = _image_files(seq)
-    by_name = {p.stem: p for p in files}
-    if all(n in by_name for n in view.frame_names):
-        paths = [by_name[n] for n in view.frame_names]
-    elif len(files) == T:
-        paths = files
-    else:
-        log.warning("%s holds %d frames, the fit %d: the cameras are drawn without pictures", seq, len(files), T)
-        return
-    from PIL import Image
-
-    for t, p in enumerate(paths):
+    for t, p in enumerate(_frame_paths(view) or []):
         try:
-            with Image.open(p) as im:
-                im.draft("RGB", (max_side, max_side))  # JPEG: decode at a fraction of the size
-                im = im.convert("RGB")
-                im.thumbnail((max_side, max_side))
-                yield t, np.asarray(im)
+            yield t, _read_image(p, max_side)
         except OSError as e:
             log.warning("%s cannot be read (%s): its camera has no picture", p, e)
+
+
+def frame_image(view: FitView, t: int, max_side: int = 1280) -> np.ndarray | None:
+    """Frame t's input picture, scaled to at most ``max_side`` pixels, or None when it cannot be read."""
+    seq = view.sequence
+    try:
+        if seq is None:
+            return None
+        if seq.is_file():
+            import cv2
+
+            cap = cv2.VideoCapture(str(seq))
+            try:
+                cap.set(cv2.CAP_PROP_POS_FRAMES, t)
+                ok, bgr = cap.read()
+            finally:
+                cap.release()
+            return _scaled(bgr[..., ::-1], max_side) if ok else None
+        paths = _frame_paths(view)
+        return _read_image(paths[t], max_side) if paths else None
+    except OSError as e:
+        log.warning("frame %d of %s cannot be read (%s)", t, seq, e)
+        return None
 
 
 # ------------------------------------------------------------------------------------------------ figures

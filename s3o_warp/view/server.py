@@ -2,10 +2,12 @@
 
 Scene (world frame Y up, :mod:`s3o_warp.view.run`):
 
-- the fitted mesh of the current frame: its vertex colours (one GLB node per frame, made in the background after the
-  first, so playing only switches which one is shown) or plain shading (one mesh whose vertices are replaced), plain
-  at 35 % opacity ("see-through", where the bones show) or hidden;
-- the skeleton of the current frame: a segment from each joint (red) to the centre (blue) of each of its two bones;
+- the fitted mesh of the current frame: its vertex colours (one GLB node per frame: the first at once, the next few
+  with each frame shown, the others in the background once a page has connected, so playing only switches which one
+  is shown) or plain shading (one mesh whose vertices are replaced), plain at 35 % opacity ("see-through", which turns
+  the skeleton on) or hidden;
+- the skeleton of the current frame (off at first: it is inside the mesh): a segment from each joint (red) to the
+  centre (blue) of each of its two bones;
 - the fitted camera of every frame as a frustum with that frame's picture (the current one orange), and, after "Look
   through the camera", the current frame's picture behind the mesh where that camera sees it (principal point
   included), so the mesh sits on the animal.
@@ -30,7 +32,7 @@ import viser.transforms as vtf
 
 from s3o_warp.errors import InputError
 from s3o_warp.view.glb import mesh_glb
-from s3o_warp.view.run import SURFACES, FitView, figures, frame_images, load_view, signature
+from s3o_warp.view.run import SURFACES, FitView, figures, frame_image, frame_images, load_view, signature
 
 log = logging.getLogger(__name__)
 
@@ -41,10 +43,18 @@ CURRENT_CAMERA_COLOR = (255, 110, 0)
 BONE_COLOR = (255, 200, 0)
 JOINT_COLOR = (230, 0, 0)
 CENTRE_COLOR = (0, 140, 255)
-FRUSTUM_SIZE = 0.12
+FRUSTUM_SIZE = 0.1
 """Depth of a drawn camera frustum, as a fraction of the mesh's bounding-box diagonal."""
 IMAGE_SIDE = 320
-"""Longest side in pixels of the pictures on the frustums and behind the mesh."""
+"""Longest side in pixels of the pictures on the frustums."""
+FILL_DELAY = 3.0
+"""Seconds after the first page connects before the other frames' meshes and the pictures are sent to it."""
+FILL_PAUSE = 0.03
+"""Seconds between two of them, so that the page draws in between instead of parsing them all first."""
+PREFETCH = 3
+"""Frames after the one shown whose meshes are sent with it (parsed by the time they are shown)."""
+BACKDROP_SIDE = 1280
+"""Longest side in pixels of the picture behind the mesh."""
 START_VIEW = (40.0, 20.0, 2.2)
 """Where a new page looks from: frame 0's camera direction turned this many degrees about the vertical, raised this
 many degrees, at this many mesh diagonals from the mesh's centre."""
@@ -85,9 +95,11 @@ class ViewServer:
         self._handles: list = []
         self._fills: list[threading.Thread] = []  # background loading of each scene built
         self._stop = threading.Event()
+        self._client_seen = threading.Event()  # a page has connected: the background loading starts
         with contextlib.redirect_stdout(io.StringIO()):  # viser's banner; s3o-view prints the address itself
             self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.host = host
+        self.server.on_client_connect(lambda _: self._client_seen.set())
         self.server.gui.configure_theme(show_share_button=False, control_width="medium")
         self.server.scene.set_up_direction("+y")
         # no environment map (viser's default one costs a page drawn without a GPU about 6 s before it draws): a
@@ -115,10 +127,11 @@ class ViewServer:
         return f"http://{host}:{self.port}"
 
     def close(self) -> None:
-        """Stop the background threads and the server."""
+        """Stop the background threads (one still reading a checkpoint is left to end with the process) and the
+        server."""
         self._stop.set()
         for th in self._threads + self._fills:
-            th.join(timeout=10)
+            th.join(timeout=2)
         self.server.stop()
 
     # ---------------------------------------------------------------------------------------------- panel
@@ -131,7 +144,8 @@ class ViewServer:
             self.frame_text = gui.add_markdown(self._frame_text(0))
         with gui.add_folder("Show"):
             self.surface = gui.add_dropdown("surface", SURFACES, initial_value=surface)
-            self.show_skeleton = gui.add_checkbox("skeleton", True)
+            self.show_skeleton = gui.add_checkbox("skeleton", surface == "see-through",
+                                                  hint="inside the mesh: pick see-through to see it")
             self.show_cameras = gui.add_checkbox("cameras", True)
             self.look_button = gui.add_button("Look through the camera", icon=viser.Icon.CAMERA,
                                               hint="set your view to the fitted camera of this frame")
@@ -145,7 +159,7 @@ class ViewServer:
 
         self.slider.on_update(lambda _: self.show_frame(int(self.slider.value)))
         self.play_button.on_click(lambda _: self.set_playing(not self.playing))
-        self.surface.on_update(lambda _: self._apply_visibility())
+        self.surface.on_update(lambda _: self._surface_changed())
         self.show_skeleton.on_update(lambda _: self._apply_visibility())
         self.show_cameras.on_update(lambda _: self._apply_visibility())
         self.show_backdrop.on_update(lambda _: self._update_backdrop())
@@ -180,6 +194,7 @@ class ViewServer:
         size = v.size()
         self.generation += 1
         self.images = {}
+        self._backdrop_image: tuple = (None, None)  # (frame, picture) behind the mesh
         with self.server.atomic():
             self.colour_root = scene.add_frame("/fit/colour", show_axes=False)
             self.colour_nodes: list = [None] * v.num_frames
@@ -193,19 +208,13 @@ class ViewServer:
                                                      thickness=0.006 * size)
             if v.joints.shape[1]:
                 self.joints = scene.add_point_cloud("/fit/skeleton/joints", v.joints[t], JOINT_COLOR,
-                                                    point_size=0.025 * size, point_shape="circle")
+                                                    point_size=0.015 * size, point_shape="circle")
             if v.centres.shape[1]:
                 self.centres = scene.add_point_cloud("/fit/skeleton/centres", v.centres[t], CENTRE_COLOR,
-                                                     point_size=0.02 * size, point_shape="circle")
+                                                     point_size=0.012 * size, point_shape="circle")
             self.cameras_root = scene.add_frame("/cameras", show_axes=False)
-            self.frustums = []
-            for k in range(v.num_frames):
-                c2w = v.cam_to_world[k]
-                self.frustums.append(scene.add_camera_frustum(
-                    f"/cameras/f{k:05d}", fov=v.fov_y(k), aspect=v.aspect(k), scale=FRUSTUM_SIZE * size,
-                    thickness=0.003 * size, color=CURRENT_CAMERA_COLOR if k == t else CAMERA_COLOR,
-                    wxyz=vtf.SO3.from_matrix(c2w[:3, :3]).wxyz, position=c2w[:3, 3], cast_shadow=False,
-                    receive_shadow=False))
+            self.frustums: list = [None] * v.num_frames
+            self._frustum(t)
             self.backdrop = None
             floor = float(v.verts[..., 1].min())
             c = v.centre()
@@ -229,19 +238,42 @@ class ViewServer:
                 self.colour_nodes[t] = node
             return node
 
+    def _frustum(self, k: int):
+        """Frame k's camera frustum (made now if the background has not made it yet)."""
+        with self.lock:
+            node = self.frustums[k]
+            if node is None:
+                v, c2w = self.view, self.view.cam_to_world[k]
+                node = self.server.scene.add_camera_frustum(
+                    f"/cameras/f{k:05d}", fov=v.fov_y(k), aspect=v.aspect(k), scale=FRUSTUM_SIZE * v.size(),
+                    thickness=0.003 * v.size(), color=CURRENT_CAMERA_COLOR if k == self.frame else CAMERA_COLOR,
+                    wxyz=vtf.SO3.from_matrix(c2w[:3, :3]).wxyz, position=c2w[:3, 3], cast_shadow=False,
+                    receive_shadow=False)
+                if k in self.images:
+                    node.image = self.images[k]
+                self.frustums[k] = node
+            return node
+
     def _fill_in(self, gen: int) -> None:
-        """Background: every frame's coloured mesh, then the pictures on the frustums."""
+        """Background, once a page has connected: every frame's camera and coloured mesh, then the pictures on the
+        frustums (sent before the page first draws, they would all be drawn or parsed before it does)."""
+        while not self._client_seen.wait(0.1):
+            if self._stop.is_set() or gen != self.generation:
+                return
+        if self._stop.wait(FILL_DELAY):
+            return
         try:
             for t in range(self.view.num_frames):
-                if self._stop.is_set() or gen != self.generation:
+                if self._stop.wait(FILL_PAUSE) or gen != self.generation:
                     return
+                self._frustum(t)
                 self._colour_node(t)
             for t, img in frame_images(self.view, IMAGE_SIDE):
-                if self._stop.is_set() or gen != self.generation:
+                if self._stop.wait(FILL_PAUSE) or gen != self.generation:
                     return
                 with self.lock:
                     self.images[t] = img
-                    self.frustums[t].image = img
+                    self._frustum(t).image = img
                     if t == self.frame:
                         self._update_backdrop()
             log.debug("scene %d filled in", gen)
@@ -265,6 +297,11 @@ class ViewServer:
         cam.look_at = tuple(c)
         cam.up = (0.0, 1.0, 0.0)
 
+    def _surface_changed(self) -> None:
+        if self.surface.value == "see-through" and not self.show_skeleton.value:
+            self.show_skeleton.value = True  # what see-through is for; -> _apply_visibility
+        self._apply_visibility()
+
     def _apply_visibility(self) -> None:
         with self.lock, self.server.atomic():
             s = self.surface.value
@@ -284,6 +321,8 @@ class ViewServer:
             if old != t and old < len(self.colour_nodes) and self.colour_nodes[old] is not None:
                 self.colour_nodes[old].visible = False
             self._colour_node(t).visible = True
+            for k in range(t + 1, min(t + 1 + PREFETCH, v.num_frames)):
+                self._colour_node(k)
             self.plain.vertices = v.verts[t]
             if self.bones is not None:
                 self.bones.points = v.bone_segments(t)
@@ -291,9 +330,9 @@ class ViewServer:
                 self.joints.points = v.joints[t]
             if self.centres is not None:
                 self.centres.points = v.centres[t]
-            if old != t and old < len(self.frustums):
+            if old != t and old < len(self.frustums) and self.frustums[old] is not None:
                 self.frustums[old].color = CAMERA_COLOR
-            self.frustums[t].color = CURRENT_CAMERA_COLOR
+            self._frustum(t).color = CURRENT_CAMERA_COLOR
             self.frame_text.content = self._frame_text(t)
             if int(self.slider.value) != t:
                 self.slider.value = t
@@ -328,8 +367,8 @@ class ViewServer:
         return vtf.SO3.from_matrix(c2w[:3, :3]).wxyz, c2w[:3, 3], v.fov_y(t), look_at
 
     def look_through(self, client, t: int | None = None) -> None:
-        """Set ``client``'s view to the fitted camera of frame t (the current one) and show that frame behind the
-        mesh."""
+        """Set ``client``'s view to the fitted camera of frame t (the current one), show that frame behind the mesh and
+        hide the frusta (those around the camera would hide the view)."""
         if client is None:
             return
         wxyz, pos, fov, look_at = self.camera_pose(self.frame if t is None else t)
@@ -340,6 +379,8 @@ class ViewServer:
             client.camera.look_at = look_at
         if not self.show_backdrop.value:
             self.show_backdrop.value = True  # -> _update_backdrop
+        if self.show_cameras.value:
+            self.show_cameras.value = False  # the frusta around the camera would hide the view
 
     def _follow(self) -> None:
         if self.follow.value:
@@ -347,14 +388,20 @@ class ViewServer:
                 self.look_through(client)
 
     def _update_backdrop(self) -> None:
-        """The current frame's picture on the plane behind the mesh that its camera sees it on."""
+        """The current frame's picture on the plane behind the mesh that its camera sees it on (the floor grid
+        hidden meanwhile: it would lie over the picture)."""
         with self.lock:
-            img = self.images.get(self.frame)
-            if not self.show_backdrop.value or img is None:
+            v, t = self.view, self.frame
+            img = None
+            if self.show_backdrop.value:
+                if self._backdrop_image[0] != t:
+                    self._backdrop_image = (t, frame_image(v, t, BACKDROP_SIDE))
+                img = self._backdrop_image[1] if self._backdrop_image[1] is not None else self.images.get(t)
+            self.grid.visible = img is None
+            if img is None:
                 if self.backdrop is not None:
                     self.backdrop.visible = False
                 return
-            v, t = self.view, self.frame
             H, W = v.image_size
             K, c2w = v.K[t], v.cam_to_world[t]
             depth = 1.5 * v.depth_range(t)[1]
