@@ -141,3 +141,20 @@ def assert_no_jump(before, after, loss0, loss1):
     diag = float((before.amax((0, 1)) - before.amin((0, 1))).norm())
     assert float((after - before).norm(dim=-1).mean()) < 0.01 * diag
     assert abs(loss1 - loss0) < 0.05 * loss0, (loss0, loss1)
+
+
+def stop_in_joint_phase(monkeypatch, sequence, run, cfg, step: int = 2, match: str | None = None):
+    """Fit ``sequence`` into ``run`` and stop it (as Ctrl-C does) at joint ``step``; its checkpoint is the next step's."""
+    from s3o_warp.fit import FitInterrupted, Fitter, fit
+
+    orig = Fitter.motion_losses
+
+    def stopping(self, frames):
+        if self.phase == "joint" and self.step == step:
+            self.request_stop()
+        return orig(self, frames)
+
+    monkeypatch.setattr(Fitter, "motion_losses", stopping)
+    with pytest.raises(FitInterrupted, match=match):
+        fit(sequence, run, cfg, torch.device("cpu"))
+    monkeypatch.setattr(Fitter, "motion_losses", orig)

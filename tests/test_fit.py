@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 import torch
-from conftest import final_params, smoke_config
+from conftest import final_params, smoke_config, stop_in_joint_phase
 
 from s3o_warp.errors import InputError
 from s3o_warp.fit import FitInterrupted, Fitter, fit, resolve_device
@@ -272,17 +272,7 @@ def test_resume_applies_a_changed_learning_rate(tiny_sequence, tmp_path, monkeyp
     optimiser state carries the old one); an unchanged rate keeps the checkpoint's."""
     cfg = _cfg(**{"coarse.steps": 4, "motion.warmup_steps": 4, "motion.steps": 6})
     run = tmp_path / "run"
-    orig = Fitter.motion_losses
-
-    def stopping(self, frames):
-        if self.phase == "joint" and self.step == 2:
-            self.request_stop()
-        return orig(self, frames)
-
-    monkeypatch.setattr(Fitter, "motion_losses", stopping)
-    with pytest.raises(FitInterrupted):
-        fit(tiny_sequence, run, cfg, torch.device("cpu"))
-    monkeypatch.setattr(Fitter, "motion_losses", orig)
+    stop_in_joint_phase(monkeypatch, tiny_sequence, run, cfg)
     seen = {}
     orig_run = Fitter.run
 

@@ -8,7 +8,7 @@ import logging
 
 import pytest
 import torch
-from conftest import smoke_config
+from conftest import smoke_config, stop_in_joint_phase
 
 import s3o_warp.fit as fit_module
 from s3o_warp.config import Config, _settings, make_config, to_dict
@@ -99,17 +99,7 @@ def test_resume_passes_a_damaged_checkpoint_over_applies_a_new_step_count_and_re
 
     over = {"coarse.steps": 2, "motion.warmup_steps": 2, "motion.steps": 6, "skeleton.epochs": 1}  # no M-step
     run = tmp_path / "run"
-    orig = Fitter.motion_losses
-
-    def stopping(self, frames):
-        if self.phase == "joint" and self.step == 2:
-            self.request_stop()
-        return orig(self, frames)
-
-    monkeypatch.setattr(Fitter, "motion_losses", stopping)
-    with pytest.raises(FitInterrupted, match="stopped at joint step 3"):
-        fit(tiny_sequence, run, _cfg(**over), torch.device("cpu"))
-    monkeypatch.setattr(Fitter, "motion_losses", orig)
+    stop_in_joint_phase(monkeypatch, tiny_sequence, run, _cfg(**over), match="stopped at joint step 3")
     ck = run / "checkpoints"
     assert sorted(p.name for p in ck.glob("step-*.pt")) == ["step-2-joint-000000.pt", "step-2-joint-000003.pt"]
 
