@@ -13,7 +13,7 @@ from conftest import smoke_config, stop_in_joint_phase
 import s3o_warp.fit as fit_module
 from s3o_warp.config import Config, _settings, make_config, to_dict
 from s3o_warp.errors import InputError
-from s3o_warp.fit import FitInterrupted, Fitter, fit
+from s3o_warp.fit import fit
 from s3o_warp.run.checkpoint import CHECKPOINT_VERSION, STATE_KEYS, load_newest
 from s3o_warp.run.resume import READ_UNTIL, apply_changed_settings
 
