@@ -214,10 +214,12 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
         sims = frame_similarities(pred.verts_cam[pi], pred.faces, gt.verts[gi], gt.faces, sim, seed=seed)
         if gt.cam_from_world is not None:
             c2w = gt.cam_from_world[gi]
+            side = dict(joints=None if gt.joints is None else gt.joints[gi], joint_names=gt.joint_names)
             result["views"] = {
-                "sequence": novel_view_iou(pred.verts_cam[pi], pred.faces, gt.verts[gi], gt.faces, c2w, [sim] * len(pi)),
-                "framewise": novel_view_iou(pred.verts_cam[pi], pred.faces, gt.verts[gi], gt.faces, c2w, sims),
-                "width_ratio": width_ratios(pred.verts_cam[pi], gt.verts[gi], c2w, sims)}
+                "sequence": novel_view_iou(pred.verts_cam[pi], pred.faces, gt.verts[gi], gt.faces, c2w, [sim] * len(pi),
+                                           **side),
+                "framewise": novel_view_iou(pred.verts_cam[pi], pred.faces, gt.verts[gi], gt.faces, c2w, sims, **side),
+                "width_ratio": width_ratios(pred.verts_cam[pi], gt.verts[gi], c2w, sims, **side)}
         else:
             skipped["views"] = f"{gt.source} has no cam_from_world (the model's up axis)"
         result["surface"] = surface_quality(pred.verts_cam[pi], pred.faces, gt.verts[gi], gt.faces, sims, seed=seed)

@@ -11,12 +11,16 @@
   scores near zero, a crumpled one does not).
 
 The body axes come from the ground truth's world (``cam_from_world``: the model's object frame, +y up): up is
-world +y, forward is the principal horizontal direction of the posed vertices over the clip.
+world +y; the side axis is the mean horizontal direction from the right to the left joint of the skeleton's named
+pairs (``Foot.L`` / ``Foot.R``, ``b_LeftLeg01`` / ``b_RightLeg01``, :func:`left_right_pairs`) over the clip, and
+forward is across it. A skeleton without such pairs takes forward as the principal horizontal direction of the
+posed vertices (a robot walking with its arms out would be taken side-on that way: its arms span the clip).
 """
 
 from __future__ import annotations
 
 import math
+import re
 
 import cv2
 import numpy as np
@@ -29,24 +33,62 @@ VIEWS = ("top", "front", "side")
 ROUGH_ANGLE_DEG = 60.0
 
 
-def body_axes(gt_verts_cam: np.ndarray, cam_from_world: np.ndarray) -> dict[str, np.ndarray]:
+_LR = (("(?<=[._])L(?=$|[._0-9])", "R"), ("(?<=[._])l(?=$|[._0-9])", "r"), ("(?<=_[fbh])l$", "r"),
+       ("Left", "Right"), ("left", "right"))
+
+
+def left_right_pairs(names) -> list[tuple[int, int]]:
+    """Indices ``(left, right)`` of the joints whose names differ only in a side marker (``.L``/``.R``, ``_l``/``_r``,
+    ``_fl``/``_fr`` (front, back, hind), ``Left``/``Right``, ``left``/``right``; a trailing ``_NNN`` node number ignored)."""
+    index: dict[str, int] = {}
+    for i, n in enumerate(names):  # a trailing node number is not part of the name (b_LeftLeg01_015, b_RightLeg01_019)
+        index.setdefault(re.sub(r"_\d+_?$", "", str(n)), i)
+    pairs = []
+    for n, i in index.items():
+        for pat, rep in _LR:
+            other = re.sub(pat, rep, n)
+            if other != n and other in index:
+                pairs.append((i, index[other]))
+                break
+    return pairs
+
+
+def body_axes(gt_verts_cam: np.ndarray, cam_from_world: np.ndarray, joints_cam: np.ndarray | None = None,
+              joint_names=None) -> dict[str, np.ndarray]:
     """Per-frame orthographic projections (2 x 3, camera space) along the body's axes.
 
     Args:
         gt_verts_cam: float (T, V, 3) ground-truth vertices, camera space of each frame.
         cam_from_world: float (T, 4, 4) world -> camera transforms of those frames (world +y up).
+        joints_cam, joint_names: the ground truth's (T, J, 3) joints (camera space) and their J names: the side
+            axis from their left/right pairs (module docstring). Without them, or without pairs, forward is the
+            vertices' principal horizontal direction.
 
     Returns:
         ``{view: (T, 2, 3)}`` rows = the image axes of each view, expressed in each frame's camera space.
     """
     R = np.asarray(cam_from_world, np.float64)[:, :3, :3]
     t = np.asarray(cam_from_world, np.float64)[:, :3, 3]
-    world = np.einsum("tba,tvb->tva", R, np.asarray(gt_verts_cam, np.float64) - t[:, None])  # R^T (x - t)
-    horiz = (world - world.mean(1, keepdims=True))[..., [0, 2]].reshape(-1, 2)
-    _, _, vt = np.linalg.svd(horiz - horiz.mean(0), full_matrices=False)
+
+    def to_world(x):  # R^T (x - t)
+        return np.einsum("tba,tvb->tva", R, np.asarray(x, np.float64) - t[:, None])
+
     up = np.array([0.0, 1.0, 0.0])
-    fwd = np.array([vt[0, 0], 0.0, vt[0, 1]])
-    side = np.cross(fwd, up)
+    pairs = left_right_pairs(joint_names) if joints_cam is not None and joint_names is not None else []
+    side = None
+    if pairs:
+        j = to_world(joints_cam)
+        li, ri = np.array(pairs).T
+        d = (j[:, li] - j[:, ri]).reshape(-1, 3)[:, [0, 2]].mean(0)
+        if np.linalg.norm(d) > 1e-9:
+            side = np.array([d[0], 0.0, d[1]]) / np.linalg.norm(d)
+            fwd = np.cross(up, side)
+    if side is None:
+        world = to_world(gt_verts_cam)
+        horiz = (world - world.mean(1, keepdims=True))[..., [0, 2]].reshape(-1, 2)
+        _, _, vt = np.linalg.svd(horiz - horiz.mean(0), full_matrices=False)
+        fwd = np.array([vt[0, 0], 0.0, vt[0, 1]])
+        side = np.cross(fwd, up)
     axes_world = {"top": np.stack([fwd, side]), "front": np.stack([side, up]), "side": np.stack([fwd, up])}
     # a world direction d is R d in camera space: rows (2, 3) @ R^T
     return {k: np.einsum("ab,tcb->tac", a, R) for k, a in axes_world.items()}
@@ -73,7 +115,7 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
 
 def novel_view_iou(pred_verts: np.ndarray, pred_faces: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray,
                    cam_from_world: np.ndarray, sims: list[Similarity], frames: np.ndarray | None = None,
-                   size: int = 160, num_frames: int = 8) -> dict:
+                   size: int = 160, num_frames: int = 8, joints: np.ndarray | None = None, joint_names=None) -> dict:
     """Silhouette IoU of the aligned prediction and the ground truth from above, the front and the side.
 
     Args:
@@ -87,6 +129,8 @@ def novel_view_iou(pred_verts: np.ndarray, pred_faces: np.ndarray, gt_verts: np.
         frames: indices to score (default ``num_frames`` evenly spaced over the clip).
         size: pixels of each square picture; both silhouettes share its frame (their joint extent plus 5 %).
         num_frames: frames scored when ``frames`` is None.
+        joints, joint_names: the ground truth's (T, J, 3) camera-space joints and names, for its side axis
+            (:func:`body_axes`).
 
     Returns:
         ``{"mean", "per_view": {view: mean IoU}, "frames": [indices], "per_frame": {view: [IoU per frame]}}``.
@@ -94,7 +138,7 @@ def novel_view_iou(pred_verts: np.ndarray, pred_faces: np.ndarray, gt_verts: np.
     T = gt_verts.shape[0]
     if frames is None:
         frames = np.unique(np.linspace(0, T - 1, min(num_frames, T)).round().astype(int))
-    axes = body_axes(gt_verts, cam_from_world)
+    axes = body_axes(gt_verts, cam_from_world, joints, joint_names)
     per_frame: dict[str, list[float]] = {v: [] for v in VIEWS}
     for t in frames:
         p = sims[t](pred_verts[t])
@@ -209,10 +253,12 @@ def body_width_ratio(verts: np.ndarray, normal: np.ndarray, offset: float = 0.0)
 
 
 def width_ratios(pred_verts: np.ndarray, gt_verts: np.ndarray, cam_from_world: np.ndarray, sims: list[Similarity],
-                 frames: np.ndarray | None = None, num_frames: int = 8) -> dict:
+                 frames: np.ndarray | None = None, num_frames: int = 8, joints: np.ndarray | None = None,
+                 joint_names=None) -> dict:
     """:func:`body_width_ratio` of the aligned prediction and of the ground truth across the truth's vertical plane
     along the body (normal: its ``side`` axis, :func:`body_axes`), mean over ``num_frames`` frames: a prediction
-    flattened into a cut-out of its side view scores far below the truth.
+    flattened into a cut-out of its side view scores far below the truth. ``joints``, ``joint_names`` as for
+    :func:`novel_view_iou`.
 
     Returns:
         ``{"pred", "truth", "frames"}``.
@@ -220,7 +266,7 @@ def width_ratios(pred_verts: np.ndarray, gt_verts: np.ndarray, cam_from_world: n
     T = gt_verts.shape[0]
     if frames is None:
         frames = np.unique(np.linspace(0, T - 1, min(num_frames, T)).round().astype(int))
-    side = body_axes(gt_verts, cam_from_world)["front"][:, 0]  # (T, 3) the body's side axis in camera space
+    side = body_axes(gt_verts, cam_from_world, joints, joint_names)["front"][:, 0]  # (T, 3) the body's side axis in camera space
     pred, truth = [], []
     for t in frames:
         pred.append(body_width_ratio(sims[t](pred_verts[t]), side[t]))

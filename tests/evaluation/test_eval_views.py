@@ -14,6 +14,7 @@ from s3o_warp.evaluation.shape import Similarity, frame_similarities, sample_sur
 from s3o_warp.evaluation.views import (
     body_axes,
     body_width_ratio,
+    left_right_pairs,
     mesh_smoothness,
     novel_view_iou,
     roughness,
@@ -138,6 +139,30 @@ def test_body_width_ratio_of_an_ellipsoid_and_its_cut_out():
     assert body_width_ratio(v, np.array([0.0, 0.0, 1.0])) == pytest.approx(0.6, abs=0.03)
     assert body_width_ratio(v + [0, 0, 5.0], np.array([0.0, 0.0, 2.0]), 5.0) == pytest.approx(0.6, abs=0.03)
     assert body_width_ratio(v * [1, 1, 0], np.array([0.0, 0.0, 1.0])) == 0.0
+
+
+def test_left_right_pairs_read_the_usual_side_markers():
+    names = ["Foot.L", "Body", "Foot.R", "b_LeftLeg01_015", "b_RightLeg01_019", "shoulder_fl", "shoulder_fr",
+             "ear_l", "ear_r", "Tail", "Palm"]
+    assert sorted(left_right_pairs(names)) == [(0, 2), (3, 4), (5, 6), (7, 8)]
+    assert left_right_pairs(["Body", "Tail", "Leg"]) == []
+
+
+def test_body_axes_take_the_side_from_the_left_and_right_joints():
+    """A biped with its arms out spans more from hand to hand than from front to back: the vertices' principal
+    direction is its side axis, and only the named left/right joints give the views their right labels."""
+    m = trimesh.creation.box(extents=(0.6, 1.0, 3.0))  # world: 0.6 front-back (x), 1 up, 3 hand to hand (z)
+    c2w = np.eye(4)[None].repeat(2, 0)
+    c2w[:, 2, 3] = 5.0
+    cam = np.stack([m.vertices + [0, 0, 5.0]] * 2)
+    joints = np.stack([np.array([[0.0, 0.0, 1.4], [0.0, 0.0, -1.4], [0.0, 0.5, 0.0]]) + [0, 0, 5.0]] * 2)
+    names = ["Hand.L", "Hand.R", "Head"]
+    by_vertices = body_axes(cam, c2w)
+    by_joints = body_axes(cam, c2w, joints, names)
+    z = np.array([0.0, 0.0, 1.0])
+    assert abs(by_joints["front"][0, 0] @ z) == pytest.approx(1.0)  # from the front: hand to hand across
+    assert abs(by_vertices["front"][0, 0] @ z) == pytest.approx(0.0, abs=1e-9)  # the vertices' reading: side-on
+    assert body_axes(cam, c2w, joints, ["A", "B", "C"])["front"] == pytest.approx(by_vertices["front"])
 
 
 def test_width_ratios_tell_a_cut_out_from_the_body():
