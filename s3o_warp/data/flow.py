@@ -239,14 +239,14 @@ def pair_flow(
     return np.concatenate([f_ab, f_ba, c_ab[..., None], c_ba[..., None]], axis=-1)
 
 
-def pair_key(seq: Sequence, t: int, cfg: DataConfig) -> str:
-    """SHA-256 hex key of pair (t, t+1): frame and mask content, boxes, settings, versions."""
-    payload = {
+def pair_payload(seq: Sequence, t: int, u: int, cfg: DataConfig) -> dict:
+    """What the flow of frames (t, u) depends on: frame and mask content, boxes, settings, versions."""
+    return {
         "format": FLOW_FORMAT_VERSION,
         "opencv": cv2.__version__,
-        "frames": [seq.frame_digest(t), seq.frame_digest(t + 1)],
-        "masks": [seq.mask_digests[t], seq.mask_digests[t + 1]],
-        "bboxes": [[int(v) for v in seq.bboxes[t]], [int(v) for v in seq.bboxes[t + 1]]],
+        "frames": [seq.frame_digest(t), seq.frame_digest(u)],
+        "masks": [seq.mask_digests[t], seq.mask_digests[u]],
+        "bboxes": [[int(v) for v in seq.bboxes[t]], [int(v) for v in seq.bboxes[u]]],
         "size": list(seq.size),
         "crop_size": seq.cfg.crop_size,
         "crop_scale": float(seq.cfg.crop_scale),
@@ -254,6 +254,11 @@ def pair_key(seq: Sequence, t: int, cfg: DataConfig) -> str:
         "flow_fb_sigma": float(FLOW_FB_SIGMA),
         "flow_finest_scale": int(FLOW_FINEST_SCALE),
     }
+
+
+def pair_key(seq: Sequence, t: int, cfg: DataConfig) -> str:
+    """SHA-256 hex key of pair (t, t+1) (:func:`pair_payload`)."""
+    payload = pair_payload(seq, t, t + 1, cfg)
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
 
 

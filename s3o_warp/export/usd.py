@@ -57,7 +57,8 @@ class ExportReport:
             posed vertices and the ones skinned with the stored top-K renormalised weights.
         topk_error_rel: ``topk_error`` divided by the canonical bounding-box diagonal.
         camera_px_error: largest reprojection error (pixels) that the file's camera model itself
-            causes (0 for USD; for glTF, the missing principal point offset and per-frame focal).
+            causes (0 for USD; for glTF, what folding each frame's principal point offset and focal
+            into the camera's pose leaves).
     """
 
     path: Path
