@@ -1,6 +1,11 @@
 """A sequence folder from a video and a box: ``SEQ/images/``, ``SEQ/masks/``, ``SEQ/masks_preview.mp4`` (the masks over
-the frames, for checking by eye) and ``SEQ/masks.json`` (what made them), written atomically (the folder appears
-whole or not at all).
+the frames, for checking by eye) and ``SEQ/masks.json`` (what made them, and each frame's confidence), written
+atomically (the folder appears whole or not at all).
+
+The default segmenter gives each frame a confidence (:class:`s3o_warp.masks.grabcut.Frame`); frames under
+:data:`FLAG_BELOW`, and frames where the object was hidden and carried on, are flagged: listed in ``masks.json``,
+marked in the preview, and named in one warning with the ``--box-at`` to add (``s3o-fit --box`` gives the same
+warning before it fits, also when it reuses the masks).
 
 Every input is checked before any work: the video or frame folder, each box (inside its frame, not empty, with
 background around it), each box's frame index, the segmenter and its checkpoint, and the output folder (a folder
@@ -23,7 +28,7 @@ from s3o_warp import interrupt
 from s3o_warp.data.io import atomic_dir, imwrite, read_json, write_json, write_video
 from s3o_warp.data.sequence import Frames, open_frames
 from s3o_warp.errors import InputError
-from s3o_warp.masks.grabcut import Box, ObjectLost, segment_video
+from s3o_warp.masks.grabcut import MAX_HIDDEN, Box, Frame, ObjectLost, segment_video
 
 log = logging.getLogger(__name__)
 
@@ -34,8 +39,12 @@ SEGMENTERS = ("grabcut", "sam2")
 MIN_BOX_SIDE = 8
 """A box narrower or lower than this (pixels) holds too little to segment."""
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 """Of ``masks.json``: a folder made by another version is made again by ``s3o-fit --box``."""
+
+FLAG_BELOW = 0.75
+"""Frames whose confidence is under this are flagged for checking. From one box on frame 0 (docs/results.md): no
+frame of DAVIS dog or cows (IoU 0.74-0.97), every frame of goat and blackswan under IoU 0.70 but their first 1-3."""
 
 _STOPPED = "the masks"
 
@@ -139,8 +148,10 @@ def _read_rgb(path: Path) -> np.ndarray:
     return cv2.cvtColor(cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION), cv2.COLOR_BGR2RGB)
 
 
-def preview_frame(image: np.ndarray, mask: np.ndarray, k: int, box: Box | None = None) -> np.ndarray:
-    """``image`` with ``mask`` tinted and outlined, the frame index, and the box on a box's frame (RGB uint8)."""
+def preview_frame(image: np.ndarray, mask: np.ndarray, k: int, box: Box | None = None, flag: str | None = None
+                  ) -> np.ndarray:
+    """``image`` with ``mask`` tinted and outlined, the frame index, the box on a box's frame, and on a flagged frame a
+    red border and ``flag`` ("check", "hidden") beside the index (RGB uint8)."""
     out = image.astype(np.float32)
     out[mask] = 0.55 * out[mask] + 0.45 * np.array([255.0, 40.0, 40.0])
     out = out.astype(np.uint8)
@@ -149,24 +160,56 @@ def preview_frame(image: np.ndarray, mask: np.ndarray, k: int, box: Box | None =
     if box is not None:
         cv2.rectangle(out, box[:2], box[2:], (0, 255, 0), max(1, image.shape[0] // 240))
     scale = max(0.4, image.shape[0] / 720)
-    cv2.putText(out, str(k), (8, int(28 * scale)), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), max(1, int(2 * scale)))
+    text = str(k)
+    if flag is not None:
+        edge = max(2, image.shape[0] // 60)
+        cv2.rectangle(out, (0, 0), (image.shape[1] - 1, image.shape[0] - 1), (255, 0, 0), 2 * edge)
+        text = f"{k} {flag}"
+    cv2.putText(out, text, (8, int(28 * scale) + 4), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255),
+                max(1, int(2 * scale)))
     return out
 
 
-def _preview(files: list[Path], masks: Path, boxes: dict[int, Box], name: str) -> Iterator[np.ndarray]:
+def _preview(files: list[Path], masks: Path, boxes: dict[int, Box], name: str, flags: dict[int, str]
+             ) -> Iterator[np.ndarray]:
     """The preview's frames (:func:`preview_frame`), one at a time."""
     for k, f in enumerate(tqdm(files, desc=f"{name}: preview", unit="frame", leave=False, disable=None)):
         interrupt.check(_STOPPED)
         mask = cv2.imread(str(masks / f"{f.stem}.png"), cv2.IMREAD_GRAYSCALE) > 127
-        yield preview_frame(_read_rgb(f), mask, k, boxes.get(k))
+        yield preview_frame(_read_rgb(f), mask, k, boxes.get(k), flags.get(k))
+
+
+def _spans(frames: list[int]) -> str:
+    """``[3, 4, 5, 9]`` as ``"3-5, 9"``."""
+    out, i = [], 0
+    while i < len(frames):
+        j = i
+        while j + 1 < len(frames) and frames[j + 1] == frames[j] + 1:
+            j += 1
+        out.append(str(frames[i]) if i == j else f"{frames[i]}-{frames[j]}")
+        i = j + 1
+    return ", ".join(out)
+
+
+def flag_warning(out: Path, record: dict) -> str | None:
+    """The warning for the flagged frames of a ``masks.json`` record (None when there are none): how many, which,
+    where to look and the ``--box-at`` to add on the first."""
+    flagged = record.get("flagged") or []
+    if not flagged:
+        return None
+    hidden = set(record.get("hidden") or [])
+    what = f"{len(flagged)} frame(s) may be wrong" + (f" ({len(hidden)} with the object hidden)" if hidden else "")
+    return (f"{out}: {what}: {_spans(flagged)}; check them in {out / 'masks_preview.mp4'} (marked in red) and, where "
+            f"the mask is wrong, add a box on the first: --box-at {flagged[0]}:X0,Y0,X1,Y1")
 
 
 def _segment(segmenter: str, files: list[Path], boxes: dict[int, Box], checkpoint: Path | None,
-             flow_preset: str) -> Iterator[tuple[int, np.ndarray]]:
+             flow_preset: str) -> Iterator[Frame]:
+    """Each frame's mask as a :class:`Frame` (SAM 2's with no confidence: ``None``)."""
     if segmenter == "sam2":
         from s3o_warp.masks import sam2
 
-        return sam2.segment_video(files, boxes, checkpoint)
+        return (Frame(k, m, None, False) for k, m in sam2.segment_video(files, boxes, checkpoint))
     return segment_video(lambda k: _read_rgb(files[k]), len(files), boxes, flow_preset)
 
 
@@ -206,6 +249,9 @@ def make_masks(source, out, boxes: dict[int, Box], segmenter: str = "grabcut", c
         request = _request(frames, source, boxes, segmenter, checkpoint)
         if reuse and made_from(out) == request:
             log.info("%s: masks made from the same video and boxes; reusing them", out)
+            warning = flag_warning(out, read_json(out / "masks.json", "masks record", "delete the folder"))
+            if warning:
+                log.warning("%s", warning)
             return out
         fps = frames.fps or 30.0
         with atomic_dir(out) as tmp:
@@ -214,32 +260,51 @@ def make_masks(source, out, boxes: dict[int, Box], segmenter: str = "grabcut", c
             (tmp / "masks").mkdir()
             areas = np.zeros(len(names), np.int64)
             touches = np.zeros(len(names), bool)
+            confidence: list[float | None] = [None] * len(names)
+            hidden = np.zeros(len(names), bool)
             bar = tqdm(total=len(names), desc=f"{frames.name}: masks ({segmenter})", unit="frame", disable=None)
             try:
-                for k, m in _segment(segmenter, files, boxes, checkpoint, flow_preset):
+                for k, m, c, carried in _segment(segmenter, files, boxes, checkpoint, flow_preset):
                     interrupt.check(_STOPPED)
+                    confidence[k], hidden[k] = (None if c is None else round(float(c), 3)), carried
                     imwrite(tmp / "masks" / f"{names[k]}.png", m.astype(np.uint8) * 255)
                     areas[k] = int(m.sum())
                     touches[k] = bool(m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any())
                     bar.update()
             except ObjectLost as e:
+                if e.frame == e.anchor:
+                    b = ",".join(map(str, boxes[e.anchor]))
+                    raise InputError(f"nothing was segmented in the box {b} on frame {e.anchor}; draw the box around "
+                                     "the object with a little background around it, or put it on another frame"
+                                     ) from None
                 raise InputError(
-                    f"the object is lost at frame {e.frame} (its mask is {e.area} pixels, {e.anchor_area} on frame "
-                    f"{e.anchor}); if it is still in the picture there, add a box around it: --box-at {e.frame}:X0,Y0,X1,Y1"
+                    f"the object is lost at frame {e.frame} (not found again in the {MAX_HIDDEN} frames after it; its "
+                    f"mask was {e.anchor_area} pixels on frame {e.anchor}); if it is still in the picture there, add a "
+                    f"box around it: --box-at {e.frame}:X0,Y0,X1,Y1"
                 ) from None
             finally:
                 bar.close()
-            write_video(_preview(files, tmp / "masks", boxes, frames.name), tmp / "masks_preview.mp4", fps)
-            write_json(tmp / "masks.json", {
+            low = [k for k, c in enumerate(confidence) if c is not None and c < FLAG_BELOW]
+            flags = {k: "check" for k in low} | {int(k): "hidden" for k in np.flatnonzero(hidden)}
+            write_video(_preview(files, tmp / "masks", boxes, frames.name, flags), tmp / "masks_preview.mp4", fps)
+            record = {
                 "request": request,
                 "fps": fps if frames.fps else None,
                 "frames": len(names),
                 "size": list(frames.size),
                 "mask_pixels": areas.tolist(),
                 "touches_border": np.flatnonzero(touches).tolist(),
-            })
+                "confidence": confidence,
+                "flag_below": FLAG_BELOW,
+                "hidden": np.flatnonzero(hidden).tolist(),
+                "flagged": sorted(flags),
+            }
+            write_json(tmp / "masks.json", record)
     finally:
         frames.close()
+    warning = flag_warning(out, record)
+    if warning:
+        log.warning("%s", warning)
     if touches.any():
         log.warning("%s: the object touches the frame border in %d frame(s) (first: %d); the fit down-weights them",
                     out, int(touches.sum()), int(np.argmax(touches)))

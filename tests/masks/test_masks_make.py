@@ -16,8 +16,9 @@ from s3o_warp.data.sequence import open_sequence
 from s3o_warp.errors import InputError
 from s3o_warp.masks import make
 from s3o_warp.masks.cli import main as masks_main
-from s3o_warp.masks.make import make_masks, parse_box, parse_box_at
-from test_masks_grabcut import box_of, iou, scene
+from s3o_warp.masks.grabcut import MAX_HIDDEN, Frame
+from s3o_warp.masks.make import FLAG_BELOW, make_masks, parse_box, parse_box_at, preview_frame
+from test_masks_grabcut import behind_a_post, box_of, iou, scene
 
 
 def write_video(path, images, fps=12.0):
@@ -95,7 +96,7 @@ def test_a_folder_not_made_by_s3o_masks_is_never_replaced(clip, tmp_path, capsys
 
 
 def test_a_lost_object_names_its_frame_and_the_box_to_add(tmp_path, capsys):
-    images, truth = scene(frames=16, vanish_at=5)
+    images, truth = scene(frames=8 + MAX_HIDDEN, vanish_at=5)  # gone for good: not found again after it
     video = write_video(tmp_path / "clip.avi", images)
     x0, y0, x1, y1 = box_of(truth[0])
     assert masks_main([str(video), "--box", f"{x0},{y0},{x1},{y1}", "--out", str(tmp_path / "seq")]) == 2
@@ -108,9 +109,9 @@ def test_a_stop_request_leaves_nothing_behind(clip, tmp_path, monkeypatch, capsy
     images, truth = clip
 
     def stop_after_one(read, n, boxes, flow_preset):
-        yield 0, truth[0]
+        yield Frame(0, truth[0], 1.0, False)
         os.kill(os.getpid(), signal.SIGTERM)  # as a user's kill would: the flag, then the next frame's check
-        yield 1, truth[1]
+        yield Frame(1, truth[1], 1.0, False)
         raise AssertionError("the masks went on after the stop")
 
     monkeypatch.setattr(make, "segment_video", stop_after_one)
@@ -118,6 +119,72 @@ def test_a_stop_request_leaves_nothing_behind(clip, tmp_path, monkeypatch, capsy
     assert masks_main([str(frames), "--box", "20,20,80,70", "--out", str(tmp_path / "seq")]) == 130
     assert "nothing was written" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["frames"]  # no folder, no temporary
+
+
+def test_doubtful_frames_are_recorded_marked_and_named_with_the_box_to_add(tmp_path, caplog):
+    images, truth, _ = behind_a_post()
+    frames = write_frames(tmp_path / "frames", images)
+    box = box_of(truth[0])
+    with caplog.at_level("WARNING", logger="s3o_warp.masks.make"):
+        out = make_masks(frames, tmp_path / "seq", {0: box})
+    rec = json.loads((out / "masks.json").read_text())
+    conf = rec["confidence"]
+    assert len(conf) == len(images) and conf[0] == 1.0 and all(0.0 <= c <= 1.0 for c in conf)
+    assert set(range(13, 17)) <= set(rec["hidden"]) and all(conf[k] == 0.0 for k in rec["hidden"])
+    assert rec["flagged"] == sorted(set(rec["hidden"]) | {k for k, c in enumerate(conf) if c < FLAG_BELOW})
+    first = rec["flagged"][0]
+    assert 8 <= first <= 12, rec["flagged"]  # the disc going behind the post
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1 and f"--box-at {first}:X0,Y0,X1,Y1" in warnings[0] and "masks_preview.mp4" in warnings[0]
+    assert f"{len(rec['flagged'])} frame(s) may be wrong" in warnings[0], warnings
+    # made again from the same video and boxes (s3o-fit --box run again): the same warning, before the fit
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="s3o_warp.masks.make"):
+        make_masks(frames, tmp_path / "seq", {0: box}, reuse=True)
+    assert [r.getMessage() for r in caplog.records if r.levelname == "WARNING"] == warnings
+
+
+def test_fit_from_a_box_gives_the_warning_before_it_fits(tmp_path, monkeypatch, caplog):
+    images, truth, _ = behind_a_post()
+    warned = []  # the warnings logged by the time the fit starts
+
+    def fit(*args, **kwargs):
+        warned.append([r.getMessage() for r in caplog.records if r.levelname == "WARNING"])
+        return {}
+
+    monkeypatch.setattr("s3o_warp.cli.fit", fit)
+    box = ",".join(map(str, box_of(truth[0])))
+    with caplog.at_level("WARNING", logger="s3o_warp.masks.make"):
+        assert fit_main([str(write_frames(tmp_path / "frames", images)), "--box", box, "--out", str(tmp_path / "run"),
+                         "--device", "cpu"]) == 0
+    assert len(warned) == 1 and any("may be wrong" in m and "--box-at" in m for m in warned[0]), warned
+
+
+def test_a_clip_with_no_doubt_gives_no_warning(clip, tmp_path, caplog):
+    images, truth = clip
+    with caplog.at_level("WARNING", logger="s3o_warp.masks.make"):
+        out = make_masks(write_frames(tmp_path / "frames", images), tmp_path / "seq", {4: box_of(truth[4])})
+    rec = json.loads((out / "masks.json").read_text())
+    assert rec["flagged"] == [] and rec["hidden"] == [] and min(rec["confidence"]) >= FLAG_BELOW, rec["confidence"]
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]
+
+
+def test_the_preview_marks_a_flagged_frame():
+    image = np.full((96, 128, 3), 90, np.uint8)
+    mask = np.zeros((96, 128), bool)
+    mask[30:60, 40:80] = True
+    plain, flagged = preview_frame(image, mask, 3), preview_frame(image, mask, 3, flag="check")
+    assert tuple(flagged[48, 0]) == (255, 0, 0) and tuple(flagged[95, 64]) == (255, 0, 0)
+    assert tuple(plain[48, 0]) == (90, 90, 90)
+
+
+def test_a_box_with_nothing_in_it_is_one_line(tmp_path, capsys):
+    images = [np.full((96, 128, 3), 120, np.uint8) for _ in range(4)]  # nothing to tell apart
+    frames = write_frames(tmp_path / "frames", images)
+    assert masks_main([str(frames), "--box", "20,20,80,70", "--out", str(tmp_path / "seq")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "nothing was segmented in the box 20,20,80,70 on frame 0" in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames"]
 
 
 def test_parsing_boxes():
