@@ -222,6 +222,10 @@ class Fitter:
         return objective.mean_terms(self.motion_losses, self.data.num_frames, self.cfg.motion.batch_frames,
                                     self.device)
 
+    def flow_by_gap(self) -> dict[int, float]:
+        """The flow error over every pair of every gap (:func:`objective.flow_by_gap`), no step taken."""
+        return objective.flow_by_gap(self.model, self.data, self.cfg.motion.batch_frames)
+
     def _joint_tensors(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The skeleton's joints (bone pairs, rest positions) on the device, copied again only after an
         M-step has replaced them (``refresh_joints`` assigns new arrays), not every step."""

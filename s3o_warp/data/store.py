@@ -15,7 +15,7 @@ import torch
 
 from s3o_warp.config import Config
 from s3o_warp.data import sequence
-from s3o_warp.data.flow import compute_flow
+from s3o_warp.data.long_flow import compute_long_flow
 from s3o_warp.errors import ConfigError, InputError
 
 
@@ -39,6 +39,7 @@ class FitData:
     mask_dir: Path | None = None  # where the sequence's masks are (for scoring)
     keypoints_file: Path | None = None  # keypoints.json beside the sequence, if any (scoring only)
     ground_truth_dir: Path | None = None  # ground_truth/ beside the sequence, if any (scoring only)
+    long_flow: dict | None = None  # {gap > 1: (flow (T-g,S,S,2), conf (T-g,S,S)) FrameStores}, pairs (t, t + gap)
 
     @property
     def num_frames(self) -> int:
@@ -95,8 +96,22 @@ class _PairField:
         return getattr(self.flow.pair(int(t)), self.field)
 
 
+class _GapPairs:
+    """The pairs (t, t + gap) of a LongFlowCache as a FlowCache-like list (``len``, ``pair(t)``)."""
+
+    def __init__(self, cache, gap: int):
+        self.cache, self.gap = cache, gap
+
+    def __len__(self) -> int:
+        return len(self.cache.files[self.gap])
+
+    def pair(self, t: int):
+        return self.cache.pair(t, self.gap)
+
+
 def prepare_data(sequence_dir: Path, cfg: Config, run_dir: Path, device: torch.device, masks=None, name=None) -> FitData:
-    """Open the sequence, crop every frame and compute (or load) the forward flow and its confidence.
+    """Open the sequence, crop every frame and compute (or load) the forward flow and its confidence, between
+    consecutive frames and frames 2-32 apart (:mod:`s3o_warp.data.long_flow`).
 
     Sequences of up to ``data.resident_max_frames`` frames live in (device) memory; longer ones are
     streamed: crops go to a memory-mapped file in ``<run>/cache`` and flow stays in its per-pair cache.
@@ -124,7 +139,11 @@ def prepare_data(sequence_dir: Path, cfg: Config, run_dir: Path, device: torch.d
         imgs[k] = crop.image
         mask_crops[k] = crop.mask
         c2f[k] = crop.crop_to_frame
-    flow = compute_flow(seq, run_dir / "cache", cfg.data)
+    lflow = compute_long_flow(seq, run_dir / "cache", cfg=cfg.data)
+    flow = _GapPairs(lflow, 1)
+    long_flow = {g: (FrameStore(_PairField(_GapPairs(lflow, g), "flow_fwd"), device, resident=resident),
+                     FrameStore(_PairField(_GapPairs(lflow, g), "conf_fwd"), device, resident=resident))
+                 for g in lflow.gaps if g > 1}
     dev = dict(device=device)
     return FitData(
         name=seq.name,
@@ -145,4 +164,5 @@ def prepare_data(sequence_dir: Path, cfg: Config, run_dir: Path, device: torch.d
         mask_dir=Path(seq.mask_files[0]).parent,
         keypoints_file=seq.keypoints_file,
         ground_truth_dir=seq.ground_truth_dir,
+        long_flow=long_flow,
     )

@@ -71,6 +71,24 @@ class Search:
         return f"finalist {len(self.refined) + 1} of {len(self.top or [])}, step {self.steps_done}"
 
 
+def v_minimum(rates, scores, fallback: float) -> float:
+    """The turn rate between the scored ones where ``c + k |rate - r0|`` (k > 0) fits ``scores`` best (least
+    squares over r0 on a 0.01-degree grid spanning the rates): the flow error over a gap grows with the size of the
+    rate's error, so the scores of rates either side of the truth form a V, and its vertex lies between the grid's
+    rates. ``fallback`` when the scores do not fall towards a vertex (k <= 0)."""
+    x, y = np.asarray(rates, np.float64), np.asarray(scores, np.float64)
+    if len(x) < 3 or not np.all(np.isfinite(y)):
+        return fallback
+    best, best_err = fallback, np.inf
+    for r0 in np.arange(x.min(), x.max() + 0.005, 0.01):
+        A = np.stack([np.ones_like(x), np.abs(x - r0)], 1)
+        (c, k), *_ = np.linalg.lstsq(A, y, rcond=None)
+        err = float(((A @ [c, k] - y) ** 2).sum())
+        if k > 1e-9 * max(float(np.abs(y).max()), 1.0) and err < best_err - 1e-12:
+            best, best_err = float(np.round(r0, 2)), err
+    return best
+
+
 def _refining() -> bool:
     return HYPOTHESIS_REFINE > 1 and HYPOTHESIS_REFINE_STEPS > 0
 
@@ -112,8 +130,9 @@ def select_hypothesis(fit, search: Search | None = None) -> float:
 
     def train(steps: int, bar: tqdm) -> float:
         """The rest of ``steps`` warm-up steps on random windows from the current state, then this hypothesis'
-        score: its optical-flow term over every frame (texture motion tells a turn from a deformation), or the
-        whole loss when the sequence has no flow term."""
+        score: its flow error over every pair of frames 1-32 apart, the mean over the gaps
+        (:func:`~s3o_warp.motion.objective.flow_by_gap`: texture motion tells a turn from a deformation, and a wrong
+        turn rate grows with the gap), or the whole loss when the sequence has no flow term."""
         fit.step = search.steps_done
         while fit.step < steps:
             frames = fit.windows.random()
@@ -132,11 +151,15 @@ def select_hypothesis(fit, search: Search | None = None) -> float:
             fit.stop_point(search)
         fit.step = 0
         try:
-            terms = fit.mean_terms()
+            if mc.w_flow > 0:
+                by_gap = fit.flow_by_gap()
+                log.debug("camera hypothesis: flow error by gap %s",
+                          ", ".join(f"{g}: {v:.3f}" for g, v in by_gap.items()))
+                return float(np.mean(list(by_gap.values())))
+            return sum(fit.mean_terms().values())
         except interrupt.Interrupted:  # stopped while scoring: the checkpoint has every step, the score is redone
             fit.stop_point(search)
             raise
-        return terms["flow"] if "flow" in terms else sum(terms.values())
 
     def start(rate: float | None, snap=None) -> None:
         """The hypothesis to train: a fresh one (``rate``, or a first-round ``snap`` going on), or the one the
@@ -184,6 +207,8 @@ def select_hypothesis(fit, search: Search | None = None) -> float:
                     fit.stop_point(search)
         scores, refined = search.scores, search.refined
         best = min(refined, key=refined.get) if refined else search.rates[int(np.argmin(scores))]
+        if len(refined) >= 3:
+            best = v_minimum(list(refined), list(refined.values()), best)
     else:
         scores, refined, best = [float("nan")], {}, search.rates[0]
     apply(best)

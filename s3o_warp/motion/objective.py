@@ -139,6 +139,36 @@ def mean_terms(terms_of, num_frames: int, batch_frames: int, device) -> dict[str
 
 
 @torch.no_grad()
+def flow_by_gap(model: S3OModel, data: FitData, batch_frames: int) -> dict[int, float]:
+    """The flow term (eq. 11, unweighted) over every pair (t, t + g) of every gap g the data holds: consecutive
+    pairs and :attr:`FitData.long_flow`'s. Frame t is rendered, both frames posed, and the projected displacement
+    of the surface seen at each pixel of frame t is compared with the observed flow there. Over a gap of g frames
+    a wrong turn rate moves the body by g times its error, so the long gaps tell rates apart that consecutive
+    pairs cannot (``docs/method.md``, camera hypotheses). A stop request ends it between batches."""
+    m, d, S = model, data, data.crop_size
+    W = m.skinning()
+    dev = m.verts.device
+    stores = {1: (d.flow_fwd, d.conf_fwd), **(d.long_flow or {})}
+    out = {}
+    for g, (flow, conf) in sorted(stores.items()):
+        num, den = 0.0, 0.0
+        for s in range(0, d.num_frames - g, batch_frames):
+            interrupt.check("the flow score of a camera hypothesis")
+            t = torch.arange(s, min(s + batch_frames, d.num_frames - g), device=dev)
+            u = t + g
+            vt, vu = m(t, weights=W), m(u, weights=W)
+            Kt = m.intrinsics_crop(t)
+            fi, bary, _ = rasterize(vt, m.faces, Kt, (S, S))
+            disp = project(vu, m.intrinsics_crop(u)) - project(vt, Kt)
+            rendered = interpolate(disp, m.faces, fi, bary)
+            w = conf[t] * (fi >= 0).float() * d.masks[t]
+            num += float((w * (rendered - flow[t]).norm(dim=-1)).sum())
+            den += float(w.sum())
+        out[g] = num / max(den, 1.0)
+    return out
+
+
+@torch.no_grad()
 def hard_iou(model: S3OModel, data: FitData, batch_frames: int) -> float:
     """Mean over all frames of the hard-render IoU with the crop masks (what the metrics measure)."""
     m, S = model, data.crop_size

@@ -49,13 +49,14 @@ def _targets():
     F = fit_mod.Fitter
     return [
         (fit_mod, "prepare_data", "data"),
-        (store, "compute_flow", "flow"),
+        (store, "compute_long_flow", "flow"),
         (fit_mod, "coarse_model", "lift"),
         (F, "__init__", "model setup"),
         (F, "run", "fit (between phases)"),
         (F, "_run_phase", None),
         (fit_mod, "select_hypothesis", "hypotheses"),
         (F, "mean_terms", "hypotheses: scoring"),
+        (F, "flow_by_gap", "hypotheses: scoring"),
         (F, "hard_iou", "hard IoU"),
         (F, "resolve_crossings", "crossings"),
         (F, "_m_step", "m-step"),

@@ -47,6 +47,64 @@ def test_camera_hypotheses_score_each_rate_and_keep_the_best(tiny_sequence, tmp_
     torch.testing.assert_close(rel, axis_angle_to_matrix(aa)[0], atol=1e-5, rtol=0)
 
 
+def test_flow_by_gap_scores_every_pair_of_every_gap_against_a_dense_twin(tiny_sequence, tmp_path):
+    """flow_by_gap's error at each gap equals the flow loss of every pair (t, t + g) computed directly (frame t
+    rendered, both posed); an observed flow equal to the model's own displacement scores 0, and a turn added to
+    the later frames scores more at the longer gaps."""
+    from s3o_warp.geometry import axis_angle_to_matrix, project
+    from s3o_warp.kernels.raster import rasterize
+    from s3o_warp.motion import losses as L
+    from s3o_warp.motion.objective import flow_by_gap
+    from s3o_warp.ops import interpolate
+
+    cfg = _cfg(**{"coarse.steps": 2, "motion.batch_frames": 3})
+    data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
+    assert sorted(data.long_flow) == [2, 4]  # 8 frames: gaps 1, 2, 4
+    f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
+    m, S, T = f.model, data.crop_size, data.num_frames
+    got = f.flow_by_gap()
+    assert sorted(got) == [1, 2, 4]
+
+    def twin(g, flow, conf):
+        num = den = 0.0
+        with torch.no_grad():
+            for t in range(T - g):
+                a, b = torch.tensor([t]), torch.tensor([t + g])
+                fi, bary, _ = rasterize(m(a), m.faces, m.intrinsics_crop(a), (S, S))
+                disp = project(m(b), m.intrinsics_crop(b)) - project(m(a), m.intrinsics_crop(a))
+                r = interpolate(disp, m.faces, fi, bary)
+                w = conf[t:t + 1] * (fi >= 0).float() * data.masks[a]
+                num += float((w * (r - flow[t:t + 1]).norm(dim=-1)).sum())
+                den += float(w.sum())
+        return num / max(den, 1.0)
+
+    stores = {1: (data.flow_fwd, data.conf_fwd), **data.long_flow}
+    for g, (flow, conf) in stores.items():
+        fl = flow[torch.arange(T - g)]
+        cf = conf[torch.arange(T - g)]
+        assert got[g] == pytest.approx(twin(g, fl, cf), rel=1e-5)
+    # the model's own displacement as the observed flow scores 0 at every gap
+    own = {}
+    for g in (1, 2, 4):
+        rows = []
+        for t in range(T - g):
+            a, b = torch.tensor([t]), torch.tensor([t + g])
+            with torch.no_grad():
+                fi, bary, _ = rasterize(m(a), m.faces, m.intrinsics_crop(a), (S, S))
+                disp = project(m(b), m.intrinsics_crop(b)) - project(m(a), m.intrinsics_crop(a))
+                rows.append(interpolate(disp, m.faces, fi, bary)[0])
+        own[g] = torch.stack(rows)
+    data.flow_fwd, data.conf_fwd = own[1], torch.ones(T - 1, S, S)
+    data.long_flow = {g: (own[g], torch.ones(T - g, S, S)) for g in (2, 4)}
+    assert max(f.flow_by_gap().values()) < 1e-4
+    with torch.no_grad():  # 2 degrees a frame more turn: the error grows with the gap
+        aa = torch.zeros(T, 3)
+        aa[:, 1] = torch.deg2rad(torch.tensor(2.0)) * torch.arange(T)
+        m.root_R0.copy_(m.root_R0 @ axis_angle_to_matrix(aa))
+    turned = f.flow_by_gap()
+    assert 0.05 < turned[1] < turned[2] < turned[4]
+
+
 def test_hypotheses_are_scored_on_every_frame(tiny_sequence, tmp_path, monkeypatch):
     """The all-frames score sees every frame and every flow pair (t, t+1) once the steps are done."""
     cfg = _cfg(**{"coarse.steps": 2, "motion.batch_frames": 3})
@@ -73,20 +131,37 @@ def test_hypotheses_are_scored_on_every_frame(tiny_sequence, tmp_path, monkeypat
         assert terms[k] == pytest.approx(want, rel=1e-6)
 
 
-def test_hypotheses_are_ranked_by_their_flow_term_or_else_the_whole_loss(tiny_sequence, tmp_path, monkeypatch):
-    """The optical-flow term over every frame ranks the hypotheses; a sequence without a flow term (faked here)
-    ranks them by the sum of its terms."""
+def test_hypotheses_are_ranked_by_their_flow_error_over_the_gaps_or_else_the_whole_loss(tiny_sequence, tmp_path,
+                                                                                       monkeypatch):
+    """The mean over the gaps of the flow error ranks the hypotheses; a sequence without a flow term
+    (``motion.w_flow=0``) ranks them by the sum of its terms."""
     import s3o_warp.motion.hypotheses as H
 
     monkeypatch.setattr(H, "HYPOTHESIS_REFINE", 0)
     cfg = _cfg(**{"coarse.steps": 2, "motion.hypotheses": 3, "motion.hypothesis_steps": 1})
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
-    scored = iter([{"flow": 0.3, "sil": 0.0}, {"flow": 0.1, "sil": 5.0}, {"flow": 0.2, "sil": 0.0},
-                   {"sil": 0.3, "smooth": 0.1}, {"sil": 0.1, "smooth": 0.4}, {"sil": 0.2, "smooth": 0.0}])
+    by_gap = iter([{1: 0.1, 2: 0.9}, {1: 0.3, 2: 0.3}, {1: 0.2, 2: 0.5}])
+    monkeypatch.setattr(Fitter, "flow_by_gap", lambda self: next(by_gap))
+    monkeypatch.setattr(Fitter, "mean_terms", lambda self: pytest.fail("scored by the whole loss"))
+    assert H.select_hypothesis(f) == 0.0  # rates -3, 0, 3: the lowest mean over the gaps, not the lowest at gap 1
+    f.cfg.motion.w_flow = 0.0
+    scored = iter([{"sil": 0.3, "smooth": 0.1}, {"sil": 0.1, "smooth": 0.4}, {"sil": 0.2, "smooth": 0.0}])
     monkeypatch.setattr(Fitter, "mean_terms", lambda self: next(scored))
-    assert H.select_hypothesis(f) == 0.0  # rates -3, 0, 3: the lowest flow term, not the lowest total
     assert H.select_hypothesis(f) == 3.0  # no flow term: the lowest total
+
+
+def test_the_chosen_rate_is_the_vertex_of_the_v_the_refined_scores_form():
+    from s3o_warp.motion.hypotheses import v_minimum
+
+    def v(r):
+        return 4.0 + 3.0 * abs(r - 2.6)
+
+    assert v_minimum([2.0, 3.0, 1.0], [v(2.0), v(3.0), v(1.0)], 3.0) == pytest.approx(2.6)
+    assert v_minimum([3.0, 1.0, 2.0], [v(3.0), v(1.0), v(2.0)], 3.0) == pytest.approx(2.6)  # any order
+    assert v_minimum([0.0, 1.0, 2.0], [3.0, 2.0, 1.0], 2.0) == 2.0  # still falling at the edge: the edge
+    assert v_minimum([0.0, 1.0, 2.0], [1.0, 1.0, 1.0], 1.0) == 1.0  # no V: the fallback
+    assert v_minimum([0.0, 1.0], [1.0, 0.0], 1.0) == 1.0  # two rates do not make a V
 
 
 def test_known_turn_rate_skips_the_scoring(tiny_sequence, tmp_path):
@@ -131,7 +206,7 @@ def test_a_signal_during_the_hypotheses_stops_within_2_s_and_resume_ends_where_a
             if self.n in (5, 11) and len(sent) == (0 if self.n == 5 else 2):
                 send()
 
-    orig, scored = Fitter.mean_terms, []
+    orig, scored = Fitter.flow_by_gap, []
 
     def scoring(self):
         scored.append(1)
@@ -140,7 +215,7 @@ def test_a_signal_during_the_hypotheses_stops_within_2_s_and_resume_ends_where_a
         return orig(self)
 
     monkeypatch.setattr(H, "tqdm", Hooked)
-    monkeypatch.setattr(Fitter, "mean_terms", scoring)
+    monkeypatch.setattr(Fitter, "flow_by_gap", scoring)
     stops = (("turn rate 2 of 3, step 2", 2), ("turn rate 2 of 3, step 3", 3), ("finalist 1 of 2, step 2", 2))
     for k, (where, done) in enumerate(stops):
         with pytest.raises(FitInterrupted, match=f"camera hypotheses \\({where}\\)"):
