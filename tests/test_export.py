@@ -65,26 +65,31 @@ def bend(theta: float) -> np.ndarray:
     return m
 
 
-def two_bone_rig(T=10) -> Rig:
-    """A cylinder along x bent at its middle over T frames, a moving root and a per-frame K.
-
-    Vertices with x <= -0.25 follow bone 0 (a small drift), x >= 0.25 follow bone 1 (bend by
-    1.2 t/(T-1) rad about z), with a linear ramp in between.
-    """
+def bent_cylinder_rig(T: int, root_at, K_at, image_size) -> Rig:
+    """A cylinder along x bent at its middle over T frames: vertices with x <= -0.25 follow bone 0 (a small drift),
+    x >= 0.25 follow bone 1 (bend by 1.2 s rad about z, s = t/(T-1)), a linear ramp in between; the root and the
+    intrinsics of frame t are ``root_at(s)`` and ``K_at(t, s)``."""
     verts, faces = cylinder()
     w1 = np.clip((verts[:, 0] + 0.25) / 0.5, 0, 1)
     motion, root, K = [], [], []
     for t in range(T):
         s = t / (T - 1)
         motion.append([rigid((0, 0.2 * s, 0), (0.0, -0.05 * s, 0)), bend(1.2 * s)])
-        root.append(rigid((0.1 * s, 0.6 * s, 0.05), (0.1 * s, -0.05, 4.0 + 0.5 * s)))
-        K.append([[300 + 10 * t, 0, 95 + t], [0, 310 + 8 * t, 70 - 0.5 * t], [0, 0, 1]])
+        root.append(root_at(s))
+        K.append(K_at(t, s))
     return Rig(
         verts=verts, faces=faces, colors=np.clip(0.5 + verts / 2, 0, 1), weights=np.stack([1 - w1, w1], 1),
         bone_names=["bone_00", "bone_01"], parents=np.array([-1, 0]),
         bind=np.stack([rigid((0, 0, 0.3), (-0.5, 0, 0)), rigid((0.2, 0, 0), (0.5, 0, 0))]),
-        bone_motion=np.array(motion), root=np.array(root), K=np.array(K, float), image_size=(144, 192), fps=12.0,
+        bone_motion=np.array(motion), root=np.array(root), K=np.array(K, float), image_size=image_size, fps=12.0,
     )
+
+
+def two_bone_rig(T=10) -> Rig:
+    """:func:`bent_cylinder_rig` with a moving root and a per-frame K (focal lengths and principal point)."""
+    return bent_cylinder_rig(
+        T, lambda s: rigid((0.1 * s, 0.6 * s, 0.05), (0.1 * s, -0.05, 4.0 + 0.5 * s)),
+        lambda t, s: [[300 + 10 * t, 0, 95 + t], [0, 310 + 8 * t, 70 - 0.5 * t], [0, 0, 1]], (144, 192))
 
 
 def chain_rig(T=6) -> Rig:
@@ -301,20 +306,9 @@ def fit_like_rig(T=12) -> Rig:
     """The fit's camera: one focal length (fx = fy) and a principal point per frame that follows the object across
     a 320x240 frame (each crop's centre, up to 36 px off the image centre, the most measured on a fitted clip), the
     object (about 160 px long) on its optical axis."""
-    verts, faces = cylinder()
-    w1 = np.clip((verts[:, 0] + 0.25) / 0.5, 0, 1)
-    motion, root, K = [], [], []
-    for t in range(T):
-        s = t / (T - 1)
-        motion.append([rigid((0, 0.2 * s, 0), (0.0, -0.05 * s, 0)), bend(1.2 * s)])
-        root.append(rigid((0.1 * s, 0.6 * s, 0.05), (0.02 * s, -0.03, 4.2 + 0.5 * s)))
-        K.append([[350.0, 0, 159.5 - 36 + 72 * s], [0, 350.0, 119.5 + 20 * np.sin(3 * s)], [0, 0, 1]])
-    return Rig(
-        verts=verts, faces=faces, colors=np.clip(0.5 + verts / 2, 0, 1), weights=np.stack([1 - w1, w1], 1),
-        bone_names=["bone_00", "bone_01"], parents=np.array([-1, 0]),
-        bind=np.stack([rigid((0, 0, 0.3), (-0.5, 0, 0)), rigid((0.2, 0, 0), (0.5, 0, 0))]),
-        bone_motion=np.array(motion), root=np.array(root), K=np.array(K, float), image_size=(240, 320), fps=12.0,
-    )
+    return bent_cylinder_rig(
+        T, lambda s: rigid((0.1 * s, 0.6 * s, 0.05), (0.02 * s, -0.03, 4.2 + 0.5 * s)),
+        lambda t, s: [[350.0, 0, 159.5 - 36 + 72 * s], [0, 350.0, 119.5 + 20 * np.sin(3 * s)], [0, 0, 1]], (240, 320))
 
 
 def glb_camera_project(gltf, camera_world: np.ndarray, points_world, image_size) -> np.ndarray:

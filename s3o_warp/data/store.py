@@ -111,7 +111,7 @@ class _GapPairs:
 
 def prepare_data(sequence_dir: Path, cfg: Config, run_dir: Path, device: torch.device, masks=None, name=None) -> FitData:
     """Open the sequence, crop every frame and compute (or load) the forward flow and its confidence, between
-    consecutive frames and frames 2-32 apart (:mod:`s3o_warp.data.long_flow`).
+    consecutive frames and, where the camera hypotheses are scored, frames 2-32 apart (:mod:`s3o_warp.data.long_flow`).
 
     Sequences of up to ``data.resident_max_frames`` frames live in (device) memory; longer ones are
     streamed: crops go to a memory-mapped file in ``<run>/cache`` and flow stays in its per-pair cache.
@@ -139,7 +139,9 @@ def prepare_data(sequence_dir: Path, cfg: Config, run_dir: Path, device: torch.d
         imgs[k] = crop.image
         mask_crops[k] = crop.mask
         c2f[k] = crop.crop_to_frame
-    lflow = compute_long_flow(seq, run_dir / "cache", cfg=cfg.data)
+    mc = cfg.motion  # frames far apart serve the camera hypotheses' score only
+    scored = mc.hypotheses > 1 and mc.turn_rate is None and mc.w_flow > 0
+    lflow = compute_long_flow(seq, run_dir / "cache", gaps=None if scored else (1,), cfg=cfg.data)
     flow = _GapPairs(lflow, 1)
     long_flow = {g: (FrameStore(_PairField(_GapPairs(lflow, g), "flow_fwd"), device, resident=resident),
                      FrameStore(_PairField(_GapPairs(lflow, g), "conf_fwd"), device, resident=resident))

@@ -145,27 +145,28 @@ def flow_by_gap(model: S3OModel, data: FitData, batch_frames: int) -> dict[int, 
     of the surface seen at each pixel of frame t is compared with the observed flow there. Over a gap of g frames
     a wrong turn rate moves the body by g times its error, so the long gaps tell rates apart that consecutive
     pairs cannot (``docs/method.md``, camera hypotheses). A stop request ends it between batches."""
-    m, d, S = model, data, data.crop_size
+    m, d, S, T = model, data, data.crop_size, data.num_frames
     W = m.skinning()
     dev = m.verts.device
     stores = {1: (d.flow_fwd, d.conf_fwd), **(d.long_flow or {})}
-    out = {}
-    for g, (flow, conf) in sorted(stores.items()):
-        num, den = 0.0, 0.0
-        for s in range(0, d.num_frames - g, batch_frames):
-            interrupt.check("the flow score of a camera hypothesis")
-            t = torch.arange(s, min(s + batch_frames, d.num_frames - g), device=dev)
-            u = t + g
-            vt, vu = m(t, weights=W), m(u, weights=W)
-            Kt = m.intrinsics_crop(t)
-            fi, bary, _ = rasterize(vt, m.faces, Kt, (S, S))
-            disp = project(vu, m.intrinsics_crop(u)) - project(vt, Kt)
-            rendered = interpolate(disp, m.faces, fi, bary)
-            w = conf[t] * (fi >= 0).float() * d.masks[t]
-            num += float((w * (rendered - flow[t]).norm(dim=-1)).sum())
-            den += float(w.sum())
-        out[g] = num / max(den, 1.0)
-    return out
+    num, den = dict.fromkeys(stores, 0.0), dict.fromkeys(stores, 0.0)
+    for s in range(0, T - 1, batch_frames):  # each frame t rendered once, for all its gaps
+        interrupt.check("the flow score of a camera hypothesis")
+        t = torch.arange(s, min(s + batch_frames, T - 1), device=dev)
+        vt, Kt = m(t, weights=W), m.intrinsics_crop(t)
+        fi, bary, _ = rasterize(vt, m.faces, Kt, (S, S))
+        pt, seen = project(vt, Kt), (fi >= 0).float() * d.masks[t]
+        for g, (flow, conf) in stores.items():
+            k = int((t + g < T).sum())  # t ascending: the first k frames have a partner g later
+            if k == 0:
+                continue
+            u = t[:k] + g
+            disp = project(m(u, weights=W), m.intrinsics_crop(u)) - pt[:k]
+            rendered = interpolate(disp, m.faces, fi[:k], bary[:k])
+            w = conf[t[:k]] * seen[:k]
+            num[g] += float((w * (rendered - flow[t[:k]]).norm(dim=-1)).sum())
+            den[g] += float(w.sum())
+    return {g: num[g] / max(den[g], 1.0) for g in sorted(stores)}
 
 
 @torch.no_grad()

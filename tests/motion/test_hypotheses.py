@@ -57,9 +57,11 @@ def test_flow_by_gap_scores_every_pair_of_every_gap_against_a_dense_twin(tiny_se
     from s3o_warp.motion.objective import flow_by_gap
     from s3o_warp.ops import interpolate
 
-    cfg = _cfg(**{"coarse.steps": 2, "motion.batch_frames": 3})
+    cfg = _cfg(**{"coarse.steps": 2, "motion.batch_frames": 3, "motion.hypotheses": 3})
     data = prepare_data(tiny_sequence, cfg, tmp_path, torch.device("cpu"))
     assert sorted(data.long_flow) == [2, 4]  # 8 frames: gaps 1, 2, 4
+    off = _cfg(**{"coarse.steps": 2, "motion.hypotheses": 3, "motion.turn_rate": 1.0})
+    assert prepare_data(tiny_sequence, off, tmp_path, torch.device("cpu")).long_flow == {}  # no scoring: gap 1 only
     f = Fitter(data, coarse_model(data, cfg), cfg, tmp_path, torch.device("cpu"))
     m, S, T = f.model, data.crop_size, data.num_frames
     got = f.flow_by_gap()
