@@ -250,14 +250,21 @@ def main(argv=None) -> int:
 
 def views_figures(metrics: dict) -> dict:
     """The figures from every side of a fit's metrics (synthetic cases): novel-view IoU per alignment and view,
-    F-score at 1 % and 2 % with each frame aligned, normal consistency and roughness (the truth's beside)."""
+    F-score at 1 % and 2 % with each frame aligned, normal consistency and roughness (the truth's beside), the
+    width ratio and the root's turn error in degrees (mean, max and last frame of each frame's own alignment
+    against the sequence's; about the vertical, signed: the last frame's turn and its change from the first's)."""
     if "views" not in metrics:
         return {}
     v, s = metrics["views"], metrics["surface"]
     return {"novel_iou": {k: {"mean": v[k]["mean"], **v[k]["per_view"]} for k in ("sequence", "framewise")},
             "fscore_framewise": s["fscore"], "normal_consistency": s["normal_consistency"],
             "roughness": {k: s["roughness"][k] for k in ("pred", "truth")},
-            **({"width_ratio": {k: v["width_ratio"][k] for k in ("pred", "truth")}} if "width_ratio" in v else {})}
+            **({"width_ratio": {k: v["width_ratio"][k] for k in ("pred", "truth")}} if "width_ratio" in v else {}),
+            **({"turn_error": {k: v["turn_error"].get(k) for k in TURN_FIGURES}} if "turn_error" in v else {})}
+
+
+TURN_FIGURES = ("mean_deg", "max_deg", "end_deg", "end_vertical_deg", "drift_vertical_deg")
+"""The turn error's figures a row keeps (metrics.json's ``views.turn_error`` has each frame's too)."""
 
 
 def _same_run(a: dict, b: dict) -> bool:

@@ -117,3 +117,19 @@ def test_a_davis_case_without_keypoints_opens(shared_data, tmp_path, monkeypatch
     assert not (seq / "keypoints.json").exists()
     assert len(open_sequence(seq).frame_names) == 90
     assert (bench_fit.prepare_case("dog", tmp_path) / "keypoints.json").is_file()  # BADJA's still converted
+
+
+def test_a_rows_views_figures_carry_the_turn_error():
+    """bench_fit's row takes metrics.json's turn error (the summary, not the per-frame list) beside novel-view IoU."""
+    view = {"mean": 0.8, "per_view": {"top": 0.7, "front": 0.8, "side": 0.9}}
+    turn = {"mean_deg": 6.0, "max_deg": 12.5, "end_deg": 12.5, "drift_vertical_deg": -12.4, "end_vertical_deg": -12.0,
+            "per_frame_deg": [0.5, 12.5], "vertical_deg": [0.4, -12.0], "frames": 2}
+    metrics = {"views": {"sequence": view, "framewise": view, "turn_error": turn},
+               "surface": {"fscore": {"1%": 0.3, "2%": 0.6}, "normal_consistency": 0.9,
+                           "roughness": {"pred": 0.1, "truth": 0.05, "angle_deg": 60.0}}}
+    row = bench_fit.views_figures(metrics)
+    assert row["turn_error"] == {"mean_deg": 6.0, "max_deg": 12.5, "end_deg": 12.5, "end_vertical_deg": -12.0,
+                                 "drift_vertical_deg": -12.4}
+    assert row["novel_iou"]["framewise"]["side"] == 0.9
+    del metrics["views"]["turn_error"]  # a metrics.json from before it: no figure, no error
+    assert "turn_error" not in bench_fit.views_figures(metrics)

@@ -31,7 +31,7 @@ from s3o_warp.evaluation.loaders import (
     load_predictions,
 )
 from s3o_warp.evaluation.shape import bbox_diagonal, frame_similarities, shape_metrics
-from s3o_warp.evaluation.views import novel_view_iou, surface_quality, width_ratios
+from s3o_warp.evaluation.views import novel_view_iou, surface_quality, turn_error, width_ratios
 from s3o_warp.evaluation.skeleton import (
     empty_bones,
     joints_inside,
@@ -115,10 +115,11 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
         ``per_frame`` {stem: IoU}), ``pck_t`` (``pck`` %, ``correct``, ``total``, ``pairs``,
         ``frames``, ``alpha``, ``threshold_frame``, ``per_keypoint``), ``shape_3d`` (see
         :func:`shape_metrics`), ``views`` (``sequence`` and ``framewise``: :func:`novel_view_iou` with the
-        sequence's alignment and with each frame's own), ``surface`` (:func:`surface_quality`, each frame
-        aligned on its own), ``skeleton`` (see :func:`skeleton_distance`), ``limb_identity`` (see
-        :func:`limb_identity`), each present only when its inputs are, and ``skipped`` {metric: reason}
-        for the others.
+        sequence's alignment and with each frame's own; ``width_ratio``, :func:`width_ratios`; ``turn_error``,
+        :func:`turn_error`: each frame's own alignment against the sequence's, in degrees), ``surface``
+        (:func:`surface_quality`, each frame aligned on its own), ``skeleton`` (see :func:`skeleton_distance`),
+        ``limb_identity`` (see :func:`limb_identity`), each present only when its inputs are, and ``skipped``
+        {metric: reason} for the others.
 
     Raises:
         InputError: unreadable or inconsistent inputs (one line naming the file and the fix).
@@ -219,7 +220,8 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
                 "sequence": novel_view_iou(pred.verts_cam[pi], pred.faces, gt.verts[gi], gt.faces, c2w, [sim] * len(pi),
                                            **side),
                 "framewise": novel_view_iou(pred.verts_cam[pi], pred.faces, gt.verts[gi], gt.faces, c2w, sims, **side),
-                "width_ratio": width_ratios(pred.verts_cam[pi], gt.verts[gi], c2w, sims, **side)}
+                "width_ratio": width_ratios(pred.verts_cam[pi], gt.verts[gi], c2w, sims, **side),
+                "turn_error": turn_error(sim, sims, c2w)}
         else:
             skipped["views"] = f"{gt.source} has no cam_from_world (the model's up axis)"
         result["surface"] = surface_quality(pred.verts_cam[pi], pred.faces, gt.verts[gi], gt.faces, sims, seed=seed)
@@ -302,6 +304,13 @@ def format_table(metrics: dict) -> str:
             w = metrics["views"]["width_ratio"]
             rows.append(("width ratio", f(w["pred"], ".3f"), f"truth {f(w['truth'], '.3f')}; the middle of the body, "
                          "across its side axis over along its other, each frame aligned alone"))
+        if "turn_error" in metrics["views"]:
+            t = metrics["views"]["turn_error"]
+            rows.append(("turn error (deg)", " / ".join(f(t[k], ".1f") for k in ("mean_deg", "max_deg", "end_deg")),
+                         "mean / max / last frame: each frame's own alignment against the sequence's"
+                         + (f"; about the vertical {t['end_vertical_deg']:+.1f} at the end, "
+                            f"{t['drift_vertical_deg']:+.1f} from the first frame"
+                            if t.get("end_vertical_deg") is not None else "")))
     if "surface" in metrics:
         m = metrics["surface"]
         rows.append(("F-score (each frame)", " / ".join(f"{x:.3f}" for x in m["fscore"].values()),

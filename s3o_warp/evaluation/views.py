@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from .shape import Similarity, bbox_diagonal, chamfer_fscore, sample_surface_faces
 
@@ -156,6 +157,47 @@ def novel_view_iou(pred_verts: np.ndarray, pred_faces: np.ndarray, gt_verts: np.
     per_view = {v: float(np.mean(per_frame[v])) for v in VIEWS}
     return {"mean": float(np.mean(list(per_view.values()))), "per_view": per_view,
             "frames": [int(t) for t in frames], "per_frame": per_frame}
+
+
+def turn_error(sim: Similarity, sims: list[Similarity], cam_from_world: np.ndarray | None = None) -> dict:
+    """The root's turn error over the clip: each frame's own alignment against the sequence's.
+
+    ``sims[t]`` is the sequence's ``sim`` followed by frame t's own rigid correction
+    (:func:`~s3o_warp.evaluation.shape.frame_similarities`: ``R_frame = R_t R_seq``), so the rotation
+    ``R_seq R_frame^T`` is how the prediction, placed by the sequence's alignment, is turned against the truth in
+    that frame. Its geodesic angle is the frame's turn error. The sequence's alignment is the best single one for
+    the clip, so a root turn that drifts steadily over an orbit reads about half its drift at either end;
+    ``drift_vertical_deg`` (the last frame's turn about the vertical less the first's) does not depend on where the
+    sequence's alignment sits. The per-frame alignment is ICP from the sequence's: it also takes up some of a wrong
+    shape or articulation (a fit with the truth's root but another pose reads a few degrees), and a turn of more
+    than some 45 degrees may be under-read.
+
+    Args:
+        sim: the sequence's similarity (prediction -> ground truth).
+        sims: T similarities, each frame's own (the same mapping).
+        cam_from_world: float (T, 4, 4) the ground truth's world -> camera transforms (world +y up); given, the
+            signed turn about the truth's vertical is added.
+
+    Returns:
+        ``{"mean_deg", "max_deg", "end_deg" (the last frame's: the orbit's end), "per_frame_deg", "frames"}``, and
+        with ``cam_from_world`` also ``"vertical_deg"`` (per frame, signed: the prediction's turn about the truth's
+        up axis, positive counter-clockwise seen from above), ``"end_vertical_deg"`` and ``"drift_vertical_deg"``.
+    """
+    R_seq = Rotation.from_matrix(np.asarray(sim.rotation, np.float64))
+    R_frame = Rotation.from_matrix(np.stack([np.asarray(s.rotation, np.float64) for s in sims]))
+    off = R_seq * R_frame.inv()  # per frame: R_seq R_frame^T
+    per_frame = np.degrees(off.magnitude())
+    out = {"mean_deg": float(per_frame.mean()), "max_deg": float(per_frame.max()), "end_deg": float(per_frame[-1]),
+           "per_frame_deg": per_frame.tolist(), "frames": len(sims)}
+    if cam_from_world is not None:
+        up = np.asarray(cam_from_world, np.float64)[:, :3, :3] @ np.array([0.0, 1.0, 0.0])  # world +y, camera space
+        q = off.as_quat(canonical=True)  # (x, y, z, w), w >= 0
+        # the twist of each rotation about the vertical (its swing-twist decomposition): 2 atan2(q_xyz . up, w)
+        vertical = np.degrees(2.0 * np.arctan2(np.einsum("ta,ta->t", q[:, :3], up), q[:, 3]))
+        out["vertical_deg"] = vertical.tolist()
+        out["end_vertical_deg"] = float(vertical[-1])
+        out["drift_vertical_deg"] = float(vertical[-1] - vertical[0])
+    return out
 
 
 def roughness(verts: np.ndarray, faces: np.ndarray, angle_deg: float = ROUGH_ANGLE_DEG) -> float:

@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 from eval_scene import H, W, cam_from_world, naive_pckt, tiny_motion, two_box_sequence
 from s3o_warp.kernels.raster import rasterize
 
@@ -99,6 +100,9 @@ def test_ground_truth_scored_against_itself_is_perfect(scene):
     assert m["surface"]["fscore"] == {"1%": 1.0, "2%": 1.0} and m["surface"]["normal_consistency"] > 0.999
     assert m["surface"]["roughness"]["pred"] == m["surface"]["roughness"]["truth"]
     assert re.search(r"novel-view IoU \(framewise\) +1\.0000", format_table(m))
+    turn = m["views"]["turn_error"]
+    assert turn["max_deg"] < 1e-3 and turn["frames"] == len(turn["per_frame_deg"]) == len(turn["vertical_deg"]) == 5
+    assert re.search(r"turn error \(deg\) +0\.0 / 0\.0 / 0\.0 ", format_table(m))
     assert m["skipped"] == {}
     json.dumps(m)  # JSON-ready
 
@@ -118,6 +122,34 @@ def test_limbs_framewise_counts_the_rig_apart_from_each_frames_pose(scene, tmp_p
     assert len(m["limbs_framewise"]["frame_scale"]) == T
     off = evaluate_run(run, scene["seq"], progress=False, n_points=1000, framewise_limbs=False)["skeleton"]
     assert "limbs_framewise" not in off
+
+
+def test_a_prediction_turning_against_the_truth_reads_its_turn(scene, tmp_path):
+    """The truth turned 3 t degrees about the vertical (through each frame's centroid) in frame t: metrics.json's
+    turn error reads the turn from frame to frame and from the first frame to the last, and the table shows it."""
+    T, k = len(scene["verts"]), 3.0
+    c2w = load_ground_truth(scene["seq"] / "ground_truth").cam_from_world
+    turned = np.empty(scene["verts"].shape, np.float32)
+    for t, v in enumerate(scene["verts"].astype(np.float64)):
+        R = Rotation.from_rotvec(np.radians(k * t) * (c2w[t, :3, :3] @ [0.0, 1.0, 0.0])).as_matrix()
+        turned[t] = (v - v.mean(0)) @ R.T + v.mean(0)
+    run = tmp_path / "turned"
+    run.mkdir()
+    np.savez(run / "motion.npz", verts_cam=turned, faces=scene["faces"], K=np.broadcast_to(scene["K"], (T, 3, 3)),
+             image_size=np.array([H, W]), frame_names=np.array(scene["names"]))
+    m = evaluate_run(run, scene["seq"], progress=False, n_points=1000)
+    turn = m["views"]["turn_error"]
+    vertical = np.array(turn["vertical_deg"])
+    assert np.diff(vertical) == pytest.approx([k] * (T - 1), abs=0.5)
+    assert turn["drift_vertical_deg"] == pytest.approx(k * (T - 1), abs=0.5)
+    # the sequence's one alignment of the moving boxes sits somewhere in the turn, with a little tilt of its own
+    assert (turn["end_deg"], turn["end_vertical_deg"]) == (turn["per_frame_deg"][-1], vertical[-1])
+    assert 0 < turn["end_vertical_deg"] <= turn["end_deg"] < k * (T - 1)
+    assert (np.array(turn["per_frame_deg"]) >= np.abs(vertical) - 1e-9).all()
+    row = re.search(r"turn error \(deg\) +([0-9.]+) / ([0-9.]+) / ([0-9.]+) .*about the vertical \+([0-9.]+) at the "
+                    r"end, \+([0-9.]+) from the first frame", format_table(m))
+    assert row and float(row[3]) == pytest.approx(turn["end_deg"], abs=0.05)
+    assert float(row[5]) == pytest.approx(turn["drift_vertical_deg"], abs=0.05)
 
 
 def test_rescore_script_scores_runs_again_beside_their_own_metrics(scene, tmp_path, capsys):

@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial.transform import Rotation
 from eval_scene import cam_from_world, rot, two_box_sequence
 
 from s3o_warp.evaluation.shape import Similarity, frame_similarities, sample_surface, sample_surface_faces, shape_metrics
@@ -20,6 +21,7 @@ from s3o_warp.evaluation.views import (
     roughness,
     silhouette,
     surface_quality,
+    turn_error,
     width_ratios,
 )
 
@@ -177,3 +179,57 @@ def test_width_ratios_tell_a_cut_out_from_the_body():
     same = width_ratios(cam, cam, c2w, [IDENTITY] * T)
     assert same["pred"] == pytest.approx(same["truth"]) and same["truth"] == pytest.approx(0.5 / 0.6, abs=0.05)
     assert width_ratios(flat, cam, c2w, [IDENTITY] * T)["pred"] < 0.1
+
+
+def _turned(verts, c2w, deg):
+    """Each frame of ``verts`` turned by ``deg[t]`` degrees about the world's vertical through its centroid
+    (counter-clockwise seen from above)."""
+    out = np.empty(verts.shape, np.float64)
+    for t, (v, a) in enumerate(zip(np.asarray(verts, np.float64), deg)):
+        up = c2w[t, :3, :3] @ [0.0, 1.0, 0.0]  # world +y in this frame's camera space
+        c = v.mean(0)
+        out[t] = (v - c) @ Rotation.from_rotvec(math.radians(a) * up).as_matrix().T + c
+    return out
+
+
+def test_turn_error_of_given_alignments_is_their_angle_about_the_vertical():
+    """Each frame's own alignment turns k t degrees about the vertical further than the sequence's (itself a tilt):
+    the prediction is turned -k t against the truth; the rotation about another axis counts in the angle alone."""
+    T, k = 6, 5.0
+    c2w = cam_from_world(T)
+    seq_R = Rotation.from_euler("xyz", [10.0, -20.0, 5.0], degrees=True)
+    sim = Similarity(1.3, seq_R.as_matrix(), np.array([0.1, 0.0, 0.2]))
+    up = c2w[:, :3, :3] @ [0.0, 1.0, 0.0]
+    sims = [Similarity(1.3, (Rotation.from_rotvec(math.radians(k * t) * up[t]) * seq_R).as_matrix(), np.zeros(3))
+            for t in range(T)]
+    r = turn_error(sim, sims, c2w)
+    assert r["per_frame_deg"] == pytest.approx([k * t for t in range(T)], abs=1e-6)
+    assert r["vertical_deg"] == pytest.approx([-k * t for t in range(T)], abs=1e-6)
+    end = k * (T - 1)
+    assert (r["end_deg"], r["end_vertical_deg"], r["drift_vertical_deg"]) == pytest.approx((end, -end, -end))
+    assert r["mean_deg"] == pytest.approx(k * (T - 1) / 2) and r["max_deg"] == pytest.approx(k * (T - 1))
+    tilt = [Similarity(1.0, (Rotation.from_euler("x", 30.0, degrees=True) * seq_R).as_matrix(), np.zeros(3))] * T
+    r = turn_error(sim, tilt, c2w)  # 30 degrees about the camera's x: no turn about the vertical
+    assert r["end_deg"] == pytest.approx(30.0) and r["vertical_deg"] == pytest.approx([0.0] * T, abs=1e-6)
+    assert "vertical_deg" not in turn_error(sim, sims)
+
+
+def test_turn_error_reads_a_prediction_turned_over_the_clip():
+    """The truth turned by k (t - 2.5) degrees about the vertical in frame t: the sequence's alignment sits near the
+    middle, each frame's own takes its turn out, and the reading is the known turn; the truth itself reads 0."""
+    T, k = 6, 4.0
+    verts, faces, _, _ = two_box_sequence(T=T)
+    c2w = cam_from_world(T)
+    known = np.array([k * (t - (T - 1) / 2) for t in range(T)])
+    pred = _turned(verts, c2w, known)
+    _, sim = shape_metrics(pred, faces, verts, faces, n_points=500)
+    r = turn_error(sim, frame_similarities(pred, faces, verts, faces, sim, n_points=2000), c2w)
+    vertical = np.array(r["vertical_deg"])
+    assert vertical - vertical.mean() == pytest.approx(known - known.mean(), abs=1.0)  # the turn, frame by frame
+    assert vertical == pytest.approx(known, abs=1.5)  # and the sequence's alignment in the middle
+    assert r["per_frame_deg"] == pytest.approx(np.abs(known), abs=1.5)
+    assert r["end_deg"] == pytest.approx(k * (T - 1) / 2, abs=1.5) and r["end_vertical_deg"] > 0
+    assert r["drift_vertical_deg"] == pytest.approx(k * (T - 1), abs=1.0)
+    _, sim = shape_metrics(verts, faces, verts, faces, n_points=500)
+    exact = turn_error(sim, frame_similarities(verts, faces, verts, faces, sim, n_points=2000), c2w)
+    assert exact["max_deg"] < 1e-3 and max(map(abs, exact["vertical_deg"])) < 1e-3
