@@ -25,7 +25,7 @@ def add_box_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--box-at", dest="box_at", action="append", default=[], metavar="K:X0,Y0,X1,Y1",
                    help="a further box on frame K (repeatable): where the object is lost, or changes much")
     p.add_argument("--segmenter", default="grabcut", help=f"one of {', '.join(SEGMENTERS)}: grabcut (default, OpenCV "
-                   "only) or sam2 (the sam2 package and --checkpoint)")
+                   "and PyMaxflow) or sam2 (the sam2 package and --checkpoint)")
     p.add_argument("--checkpoint", default=None, metavar="PATH", help="SAM 2 weights for --segmenter sam2 "
                    "(e.g. sam2.1_hiera_tiny.pt, downloaded once; never fetched here)")
 
