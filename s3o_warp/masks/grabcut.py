@@ -337,20 +337,17 @@ def _residual(flow: np.ndarray, samples: np.ndarray) -> np.ndarray | None:
     return np.linalg.norm(pts + flow - predicted, axis=-1)
 
 
-def _moving(back: np.ndarray, fwd: np.ndarray, background: np.ndarray, erode: int) -> np.ndarray | None:
+def _moving(back: np.ndarray, fb: np.ndarray, background: np.ndarray, erode: int) -> np.ndarray | None:
     """Pixels that clearly move otherwise than the background: ``back``'s residual against its homography on
     ``background`` over :data:`MOVING_FACTOR` x the background's median (and :data:`MOVING_MIN` pixels), eroded by
-    ``erode`` pixels (the flow blurs motion over the object's edge), where ``back`` and ``fwd`` agree within
-    :data:`MOVING_FB` pixels (flow dragged over a smooth background by a fast object does not come back). None
-    without a background homography."""
+    ``erode`` pixels (the flow blurs motion over the object's edge), where ``back``'s forward-backward error ``fb``
+    (:func:`s3o_warp.masks.cut.fb_error`) is under :data:`MOVING_FB` pixels (flow dragged over a smooth background
+    by a fast object does not come back). None without a background homography."""
     r = _residual(back, background)
     if r is None:
         return None
     t = max(MOVING_MIN, MOVING_FACTOR * float(np.median(r[background])))
-    h, w = back.shape[:2]
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-    there = cv2.remap(fwd, xx + back[..., 0], yy + back[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    agree = np.linalg.norm(back + there, axis=-1) < MOVING_FB
+    agree = fb < MOVING_FB
     moving = (cv2.erode((r > t).astype(np.uint8), _disk(erode)) > 0) & agree
     return cv2.erode(moving.astype(np.uint8), _disk(1)) > 0
 
@@ -423,10 +420,11 @@ def carry(previous_image: np.ndarray, image: np.ndarray, previous_mask: np.ndarr
         ys, xs = np.nonzero(outer)
         c = np.s_[max(0, ys.min() - 1) : ys.max() + 2, max(0, xs.min() - 1) : xs.max() + 2]  # the cut's region
         log_odds = cut.colour_log_odds(roi[c], models)
-        motion = cut.motion_log_odds(back, core if core.any() else warped, ~outer, band, cut.fb_error(back, fwd))
+        fb = cut.fb_error(back, fwd)
+        motion = cut.motion_log_odds(back, core if core.any() else warped, ~outer, band, fb)
         log_odds += cut.MOTION_WEIGHT * motion[c]
         log_odds += SHAPE_WEIGHT * cut.shape_log_odds(warped[c], max(1.0, SHAPE_SCALE * band), SHAPE_CLIP)
-        moving = _moving(back, fwd, ~outer, max(2, int(MOVING_ERODE * side)))
+        moving = _moving(back, fb, ~outer, max(2, int(MOVING_ERODE * side)))
         fg = np.zeros((h, w), bool)
         fg[c] = cut.graph_cut(roi[c], log_odds, fixed_bg=~outer[c],
                               fixed_fg=None if moving is None else (moving & core)[c])
