@@ -1,10 +1,11 @@
 """The ``s3o-fit`` console script (same as ``python scripts/fit.py``).
 
-    s3o-fit [SEQUENCE] [--device cpu|cuda[:N]] [--out RUN_DIR] [--config FILE] [--preset NAME]
+    s3o-fit [SEQUENCE ...] [--synchronized] [--device cpu|cuda[:N]] [--out RUN_DIR] [--config FILE] [--preset NAME]
             [--seed N] [--resume] [--branch-from RUN_DIR] [--set section.key=value ...]
             [--box X0,Y0,X1,Y1 [--frame K] [--box-at K:X0,Y0,X1,Y1 ...] [--segmenter NAME] [--checkpoint PATH]]
 
-With no SEQUENCE it renders the built-in procedural quadruped into ``RUN_DIR/sequence`` and fits it. With ``--box``
+With no SEQUENCE it renders the built-in procedural quadruped into ``RUN_DIR/sequence`` and fits it. Several
+SEQUENCEs are videos of one object: one fit, one body (``--masks`` and ``--box`` then once per video, in order). With ``--box``
 SEQUENCE is a video or a folder of frames without masks: ``s3o-masks`` makes ``RUN_DIR/sequence`` first.
 Bad input ends with one line on stderr (exit code 2), never a traceback.
 """
@@ -30,9 +31,13 @@ log = logging.getLogger("s3o_warp")
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="s3o-fit", description="Fit shape, skeleton and motion to one video with masks.")
-    p.add_argument("sequence", nargs="?", help="sequence folder (images/ + masks/), a DAVIS sequence folder, a DAVIS root "
-                   "with --name, or a video file / frame folder with --masks; default: the built-in quadruped")
-    p.add_argument("--masks", default=None, help="mask folder for a video file or a frame folder without masks/")
+    p.add_argument("sequence", nargs="*", help="sequence folder (images/ + masks/), a DAVIS sequence folder, a DAVIS root "
+                   "with --name, or a video file / frame folder with --masks; several: videos of one object, fitted "
+                   "together; default: the built-in quadruped")
+    p.add_argument("--masks", default=None, action="append",
+                   help="mask folder for a video file or a frame folder without masks/ (several videos: once per video)")
+    p.add_argument("--synchronized", action="store_true", help="several videos are the same instants seen from "
+                   "several cameras (as many frames each): one body pose per frame (motion.synchronized)")
     p.add_argument("--name", default=None, help="sequence name inside a DAVIS root (e.g. cows)")
     p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: CUDA when Warp sees a GPU, else cpu)")
     p.add_argument("--out", default=None, help="run directory (default: runs/<sequence name>)")
@@ -46,7 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "at a fraction of a fit")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override one setting, e.g. motion.steps=300")
     p.add_argument("--object-id", type=int, default=None, help="palette index of the object in multi-object masks")
-    add_box_arguments(p)
+    add_box_arguments(p, per_video=True)
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     return p
 
@@ -68,36 +73,60 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
+def _per_video(flag: str, values: list | None, count: int) -> list:
+    """One value of ``flag`` per video: none, one for one video, or one per video."""
+    if not values:
+        return [None] * count
+    if len(values) != count:
+        raise InputError(f"{flag} given {len(values)} times for {count} videos; give it once per video, in their order")
+    return list(values)
+
+
 def _run(args) -> int:
-    cfg = make_config(args.preset, args.config, args.overrides, args.seed)
+    cfg = make_config(args.preset, args.config, args.overrides + (["motion.synchronized=true"] if args.synchronized
+                                                                   else []), args.seed)
     if args.object_id is not None:
         cfg.data.object_id = args.object_id
-    boxes = boxes_from(args)
-    if boxes and args.sequence is None:
+    n = max(len(args.sequence), 1)
+    masks = _per_video("--masks", args.masks, n)
+    boxes = [boxes_from(args, b, 0 if f is None else f) for b, f in zip(_per_video("--box", args.box, n), _per_video("--frame", args.frame, n))
+             if b is not None] if args.box else []
+    if args.frame and not args.box:
+        raise InputError("--frame says which frame --box is drawn on; add --box X0,Y0,X1,Y1")
+    if args.box_at and n > 1:
+        raise InputError("--box-at needs one video; make each video's masks with s3o-masks VIDEO --box ... --box-at ... "
+                         "and pass the folders it writes")
+    if boxes and not args.sequence:
         raise InputError("--box needs a video or a folder of frames to segment; pass it as SEQUENCE")
-    if boxes and args.masks is not None:
+    if boxes and any(m is not None for m in masks):
         raise InputError("--box makes the masks; leave out --masks (or leave out --box to use your masks)")
+    if args.synchronized and n < 2:
+        raise InputError("--synchronized needs several videos (the same instants from several cameras); pass two or more")
     device = resolve_device(args.device)
     log.info("s3o-fit: device %s (%s)", device, "requested" if args.device else "auto")
-    if args.sequence is None:
+    if not args.sequence:
         out = Path(args.out or "runs/quadruped")
-        seq = out / "sequence"
-        if not (seq / "images").is_dir():
-            log.info("no sequence given: rendering the built-in procedural quadruped into %s", seq)
-            make_sequence(seq, seed=cfg.seed)
+        seqs = [out / "sequence"]
+        if not (seqs[0] / "images").is_dir():
+            log.info("no sequence given: rendering the built-in procedural quadruped into %s", seqs[0])
+            make_sequence(seqs[0], seed=cfg.seed)
     else:
-        seq = Path(args.sequence)
-        if not seq.exists():
-            raise InputError(f"sequence folder {seq} does not exist; pass a folder with images/ and masks/")
-        out = Path(args.out or Path("runs") / (args.name or seq.stem))
+        seqs = [Path(p) for p in args.sequence]
+        for seq in seqs:
+            if not seq.exists():
+                raise InputError(f"sequence folder {seq} does not exist; pass a folder with images/ and masks/")
+        stem = "+".join(args.name or p.stem for p in seqs) if n > 1 else (args.name or seqs[0].stem)
+        out = Path(args.out or Path("runs") / stem)
     if boxes:
-        seq = _masks_first(seq, out, boxes, args, cfg)
-    metrics = fit(seq, out, cfg, device, resume=args.resume, masks=args.masks, name=args.name,
-                  branch_from=args.branch_from)
+        seqs = [_masks_first(seq, out, bx, args, cfg) for seq, bx in zip(seqs, boxes)]
+    metrics = fit(seqs[0] if n == 1 else seqs, out, cfg, device, resume=args.resume,
+                  masks=masks[0] if n == 1 else masks, name=args.name, branch_from=args.branch_from)
     log.info("run directory: %s", out.resolve())
-    iou = (metrics.get("mask_iou") or {}).get("mean")
-    pck = (metrics.get("pck_t") or {}).get("pck")
-    log.info("mask IoU %s, PCK-T %s", f"{iou:.3f}" if iou is not None else "n/a", f"{pck:.1f}" if pck is not None else "n/a")
+    for label, m in ([(None, metrics)] if n == 1 else list(metrics["videos"].items())):
+        iou = (m.get("mask_iou") or {}).get("mean")
+        pck = (m.get("pck_t") or {}).get("pck")
+        log.info("%smask IoU %s, PCK-T %s", f"{label}: " if label else "", f"{iou:.3f}" if iou is not None else "n/a",
+                 f"{pck:.1f}" if pck is not None else "n/a")
     for p in sorted((out / "renders").glob("*")):
         log.info("render: %s", p)
     return 0

@@ -174,6 +174,10 @@ class MotionConfig:
     the kinematic tree, moved by either of its two bones, lands in the same place (squared gap over the
     object's size squared), so a leg swings about its hip instead of sliding across the body (joints inside
     the body: quadruped 70 -> 85 %, Fox 77 -> 98 %, horse 78 -> 89 %); 0 = off."""
+    synchronized: bool = False
+    """Several videos are the same instants seen from several cameras (``s3o-fit A B --synchronized``): frame k of
+    every video shares one body pose (bone motion); each video keeps its own camera and root. The videos must have
+    as many frames each."""
     resolve_crossings: bool = True
     """After the warm-up, and once more after the first epoch of the joint phase, let each symmetric limb pair of
     the lift swing through its crossings instead of bouncing back (frames relabelled where the feet's paths cross

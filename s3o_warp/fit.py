@@ -50,7 +50,7 @@ from s3o_warp.kernels import _warp
 from s3o_warp.model import S3OModel
 from s3o_warp.motion import objective
 from s3o_warp.motion.crossings import resolve_model_crossings
-from s3o_warp.motion.hypotheses import Search, select_hypothesis
+from s3o_warp.motion.hypotheses import Search, select_hypotheses
 from s3o_warp.motion.large_steps import FitAdam
 from s3o_warp.motion.losses import soft_iou
 from s3o_warp.motion.windows import FrameWindows
@@ -107,8 +107,15 @@ class Fitter:
             sym_plane=(torch.as_tensor(coarse_res.sym_plane[0], device=device), coarse_res.sym_plane[1]),
             size=float((v0.max(0).values - v0.min(0).values).norm()),  # the object's size (bbox diagonal)
         )
+        videos = None
+        if data.num_videos > 1:  # no smoothness across two videos (nor across the rows synchronized ones share)
+            videos = [(v.start, v.stop) for v in data.videos]
+            self.ctx.frame_pairs = torch.as_tensor(data.pair_valid(1), device=device)
+            if not cfg.motion.synchronized:
+                self.ctx.motion_pairs = self.ctx.frame_pairs
         self.gen = torch.Generator().manual_seed(cfg.seed)
-        self.windows = FrameWindows(data.num_frames, cfg.motion.batch_frames, coarse_res.canonical, self.gen, device)
+        self.windows = FrameWindows(data.num_frames, cfg.motion.batch_frames, coarse_res.canonical, self.gen, device,
+                                    videos=videos, anchors=list(coarse_res.anchors) or None)
         self.phase = PHASES[0]
         self.step = 0  # step within the phase
         self.log_file = self.run_dir / "log.jsonl"
@@ -217,14 +224,21 @@ class Fitter:
         return objective.motion_terms(self.model, self.data, frames, mc, joint_phase=self.phase == "joint",
                                       sigma=sigma, ctx=self.ctx)
 
-    def mean_terms(self) -> dict[str, float]:
-        """Every weighted motion term averaged over windows that cover every frame (no step taken)."""
+    def mean_terms(self, span: tuple[int, int] | None = None) -> dict[str, float]:
+        """Every weighted motion term averaged over windows that cover every frame (of ``span``, one video's
+        ``(start, stop)``), no step taken."""
         return objective.mean_terms(self.motion_losses, self.data.num_frames, self.cfg.motion.batch_frames,
-                                    self.device)
+                                    self.device, span=span)
 
-    def flow_by_gap(self) -> dict[int, float]:
-        """The flow error over every pair of every gap (:func:`objective.flow_by_gap`), no step taken."""
-        return objective.flow_by_gap(self.model, self.data, self.cfg.motion.batch_frames)
+    def flow_by_gap(self, span: tuple[int, int] | None = None) -> dict[int, float]:
+        """The flow error over every pair of every gap (:func:`objective.flow_by_gap`; of ``span``, one video's
+        ``(start, stop)``), no step taken."""
+        return objective.flow_by_gap(self.model, self.data, self.cfg.motion.batch_frames, span=span)
+
+    @property
+    def reference_video(self) -> int:
+        """The video of the canonical frame: the others are registered to it."""
+        return self.windows.video(self.coarse.canonical)
 
     def _joint_tensors(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The skeleton's joints (bone pairs, rest positions) on the device, copied again only after an
@@ -276,9 +290,9 @@ class Fitter:
                 self._good = None
                 self.save_checkpoint()
             n = self.phase_steps(phase)
-            if phase == "warmup" and self.step == 0 and (self.cfg.motion.hypotheses > 1
+            if phase == "warmup" and self.step == 0 and (self.cfg.motion.hypotheses > 1 or self.data.num_videos > 1
                                                          or self.cfg.motion.turn_rate is not None):
-                select_hypothesis(self, self._hypotheses)
+                select_hypotheses(self, self._hypotheses)
                 self._hypotheses = None
             with tqdm(total=n, initial=self.step, desc=f"{phase:>6}", dynamic_ncols=True, leave=True) as bar:
                 self._run_phase(phase, n, bar)
@@ -364,7 +378,12 @@ class Fitter:
         m = self.model
         virtual = self.cfg.skeleton.method == "virtual"  # k-means bones: the lift's pairs do not apply
         pairs = [] if virtual else [p for p in self.coarse.limb_pairs if max(p.a, p.b) < m.num_bones]
-        counts = resolve_model_crossings(m, self.opt, pairs, self.coarse.canonical)
+        videos = None
+        if self.data.num_videos > 1:  # each video on its own, the reference first
+            w = self.windows
+            order = [self.reference_video] + [v for v in range(len(w.videos)) if v != self.reference_video]
+            videos = [(*w.videos[v], w.anchors[v]) for v in order]
+        counts = resolve_model_crossings(m, self.opt, pairs, self.coarse.canonical, videos)
         self._event("crossings", pairs=[[p.a, p.b] for p in pairs], exchanged_frames=counts)
         log.info("crossings: %d limb pairs, exchanged frames %s", len(pairs), counts)
         return counts
@@ -381,11 +400,16 @@ class Fitter:
         m = self.model
         keep = torch.ones(m.num_frames, dtype=torch.bool, device=frames.device)
         keep[frames] = False
-        per_frame = (m.root_aa, m.root_t, m.bone_aa, m.bone_t) + (() if m.pp_shared else (m.pp,))
-        saved = [p.data.clone() for p in per_frame]
+        keep_rows = keep
+        if m.num_motion_rows != m.num_frames:  # synchronized videos: the rows of the window's frames move
+            keep_rows = torch.ones(m.num_motion_rows, dtype=torch.bool, device=frames.device)
+            keep_rows[m.motion_of[frames]] = False
+        per_frame = ((m.root_aa, keep), (m.root_t, keep), (m.bone_aa, keep_rows), (m.bone_t, keep_rows)) + (
+            () if m.pp_shared else ((m.pp, keep),))
+        saved = [p.data.clone() for p, _ in per_frame]
         self.opt.step()
-        for p, v in zip(per_frame, saved):  # where(), not a boolean index: no host sync on a GPU
-            p.data.copy_(torch.where(keep.view(-1, *([1] * (p.dim() - 1))), v, p.data))
+        for (p, k), v in zip(per_frame, saved):  # where(), not a boolean index: no host sync on a GPU
+            p.data.copy_(torch.where(k.view(-1, *([1] * (p.dim() - 1))), v, p.data))
 
     # -- skeleton learning ---------------------------------------------------------------------------
     def steps_per_epoch(self, n: int) -> int:
@@ -502,7 +526,7 @@ class Fitter:
         m = self.model
         if m.num_bones == B:
             return
-        T = m.num_frames
+        T = m.num_motion_rows
         kw = dict(dtype=m.bone_centers.dtype, device=m.bone_centers.device)
         m.bone_centers = torch.nn.Parameter(torch.zeros(B, 3, **kw))
         m.bone_quat = torch.nn.Parameter(torch.zeros(B, 4, **kw))
@@ -586,7 +610,8 @@ def check_writable(out_dir: Path) -> None:
 
 def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool = False, masks=None, name=None,
         branch_from=None) -> dict:
-    """Fit one sequence and write the run directory; returns the metrics dict.
+    """Fit one sequence, or one object from several (``sequence_dir`` and ``masks`` lists), and write the run
+    directory; returns the metrics dict (several videos: ``{"videos": {name: metrics}, "mean", "registration"}``).
 
     ``sequence_dir`` is a sequence folder, a DAVIS root (with ``name``), a DAVIS sequence folder, or a
     video file / frame folder with a separate ``masks`` folder (see ``s3o_warp.data.sequence.open_sequence``).
@@ -609,7 +634,14 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
         resumed = load_newest(out_dir, device) if resume else None  # (path, state); damaged ones passed over
         if resumed is not None:
             apply_changed_settings(resumed[1], cfg, resumed[0])  # one that cannot take effect: refused here
-        data = prepare_data(Path(sequence_dir), cfg, out_dir, device, masks=masks, name=name)  # validates input first
+        several = isinstance(sequence_dir, (list, tuple)) and len(sequence_dir) > 1
+        if several and cfg.motion.principal_point == "shared":
+            raise InputError("motion.principal_point=shared takes one video; fit several videos with "
+                             "motion.principal_point=frame (the default)")
+        seqs = [Path(p) for p in sequence_dir] if several else Path(sequence_dir[0] if isinstance(
+            sequence_dir, (list, tuple)) else sequence_dir)
+        data = prepare_data(seqs, cfg, out_dir, device, masks=masks, name=name)  # validates input first
+
         try:
             out_dir.mkdir(parents=True, exist_ok=True)
         except OSError as e:

@@ -5,6 +5,8 @@ orientation V_b, log-scales of the precision Lambda_b, length); per frame t the 
 (object -> camera) and bone transforms T_b^t, each bone rotating about its own centre; intrinsics with
 one focal length shared over the video (full-frame pixels) and a principal point per frame in the crop (LASR's),
 or one principal point for the whole video in full-frame pixels (``principal_point="shared"``, a real camera's).
+Several videos of one object share the mesh, bones and skinning; each frame has its own root and camera, each video
+its own focal length (``video_of``), and synchronized videos share the bone motion frame by frame (``motion_of``).
 
 Posed vertices (eq. 3): ``X^t = T_0^t (sum_b W[n,b] T_b^t) X^0`` through the Warp skinning ops.
 Rotations are axis-angle vectors (never Euler angles); the root rotation is a learnable axis-angle
@@ -40,6 +42,9 @@ class ModelInit:
     crop_to_frame: torch.Tensor  # (T, 3, 3) crop pixel -> full-frame pixel
     principal_point: str = "frame"  # frame: one per frame in the crop (LASR); shared: one in full-frame pixels
     frame_size: tuple | None = None  # (H, W) full frame; principal_point="shared" starts at its centre
+    video_of: torch.Tensor | None = None  # (T,) int64 video of each frame (several videos: ``focal`` one per video)
+    motion_of: torch.Tensor | None = None  # (T,) int64 row of the bone motion each frame takes (synchronized videos
+    # share rows; default: one row per frame)
 
 
 def root_for_shared_principal_point(root_R: torch.Tensor, root_t: torch.Tensor, crop_to_frame: torch.Tensor,
@@ -79,6 +84,11 @@ class S3OModel(nn.Module):
         f32 = dict(dtype=torch.float32)
         T = init.root_R.shape[0]
         B = init.centers.shape[0]
+        vo = torch.zeros(T, dtype=torch.int64) if init.video_of is None else torch.as_tensor(init.video_of).long()
+        mo = torch.arange(T) if init.motion_of is None else torch.as_tensor(init.motion_of).long()
+        self.register_buffer("video_of", vo.clone())
+        self.register_buffer("motion_of", mo.clone())
+        Tm = int(mo.max()) + 1
         self.verts = nn.Parameter(torch.as_tensor(init.verts, **f32).clone())
         c = torch.as_tensor(init.colors, **f32).clamp(1e-3, 1 - 1e-3)
         self.color_logits = nn.Parameter(torch.log(c / (1 - c)))
@@ -89,9 +99,10 @@ class S3OModel(nn.Module):
         self.register_buffer("root_R0", torch.as_tensor(init.root_R, **f32).clone())
         self.root_aa = nn.Parameter(torch.zeros(T, 3, **f32))
         self.root_t = nn.Parameter(torch.as_tensor(init.root_t, **f32).clone())
-        self.bone_aa = nn.Parameter(torch.zeros(T, B, 3, **f32))
-        self.bone_t = nn.Parameter(torch.zeros(T, B, 3, **f32))
-        self.log_focal = nn.Parameter(torch.tensor(float(torch.log(torch.tensor(init.focal))), **f32))
+        self.bone_aa = nn.Parameter(torch.zeros(Tm, B, 3, **f32))
+        self.bone_t = nn.Parameter(torch.zeros(Tm, B, 3, **f32))
+        focal = torch.log(torch.as_tensor(init.focal, dtype=torch.float64))  # () one video, (V,) several
+        self.log_focal = nn.Parameter(focal.to(torch.float32).clone())
         S = float(init.crop_size)
         if init.principal_point not in ("frame", "shared"):
             raise ValueError(f"principal_point must be 'frame' or 'shared', got {init.principal_point!r}")
@@ -115,6 +126,15 @@ class S3OModel(nn.Module):
     def num_bones(self) -> int:
         return self.bone_centers.shape[0]
 
+    @property
+    def num_motion_rows(self) -> int:
+        """Rows of the bone motion: the frames, or one video's frames when synchronized videos share them."""
+        return self.bone_aa.shape[0]
+
+    @property
+    def num_videos(self) -> int:
+        return int(self.video_of.max()) + 1 if self.video_of.numel() else 1
+
     # -- skeleton ----------------------------------------------------------------------------------
     def precisions(self) -> torch.Tensor:
         """Q_b = V_b^T diag(exp s_b) V_b, ``(B, 3, 3)``."""
@@ -137,14 +157,16 @@ class S3OModel(nn.Module):
 
     def bone_rt(self, frames: torch.Tensor) -> torch.Tensor:
         """T_b^t as ``(t, B, 3, 4)``: rotation about the bone's own centre plus a translation."""
-        R = axis_angle_to_matrix(self.bone_aa[frames])
+        rows = self.motion_of[frames]
+        R = axis_angle_to_matrix(self.bone_aa[rows])
         c = self.bone_centers[None, :, :, None]
-        t = c[..., 0] + self.bone_t[frames] - (R @ c)[..., 0]
+        t = c[..., 0] + self.bone_t[rows] - (R @ c)[..., 0]
         return torch.cat([R, t[..., None]], -1)
 
     def intrinsics_crop(self, frames: torch.Tensor) -> torch.Tensor:
         """K in crop pixels ``(t, 3, 3)``: focal = shared full-frame focal x the frame's crop scale."""
-        f = torch.exp(self.log_focal) * self.crop_scale[frames]
+        lf = self.log_focal if self.log_focal.dim() == 0 else self.log_focal[self.video_of[frames]]
+        f = torch.exp(lf) * self.crop_scale[frames]
         K = torch.zeros(len(frames), 3, 3, dtype=f.dtype, device=f.device)
         K[:, 0, 0] = f
         K[:, 1, 1] = f

@@ -1,15 +1,18 @@
 """s3o-view: the run directory read into world-frame arrays (against motion.npz), the page served on a free port,
 drawn in headless Chromium (skipped without Debian's chromium), the slider moving the mesh and bones, looking through
-a fitted camera, a running fit's checkpoint shown and replaced by a newer one, and bad input as one line, exit 2."""
+a fitted camera, a running fit's checkpoint shown and replaced by a newer one, a fit of several videos shown one at a
+time (finished and running; the "video" selector, ``--video``), and bad input as one line, exit 2."""
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 import sys
 import time
 import urllib.request
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -20,7 +23,7 @@ from s3o_warp.errors import InputError
 from s3o_warp.fit import fit
 from s3o_warp.view import cli
 from s3o_warp.view.glb import mesh_glb
-from s3o_warp.view.run import checkpoints, figures, load_view
+from s3o_warp.view.run import checkpoints, figures, load_view, video_spans
 
 REPO = Path(__file__).resolve().parents[1]
 CHROMIUM = "/usr/bin/chromium"
@@ -35,10 +38,36 @@ def run_dir(tiny_sequence, tmp_path_factory) -> Path:
     return run
 
 
+B_FRAMES = [6, 5, 4, 3, 2, 1]
+"""Video b of :func:`videos_run`: these frames of the fit, in this order (a motion of its own, 6 frames)."""
+PER_FRAME = ("verts_cam", "joints_cam", "root", "K", "bone_motion", "frame_names")
+"""What ``motion.npz`` holds frame by frame."""
+
+
+@pytest.fixture(scope="module")
+def videos_run(run_dir, tmp_path_factory) -> Path:
+    """A finished fit of two videos as the fit writes one: the smoke fit as video a, its frames :data:`B_FRAMES` as
+    video b (``videos/<name>/`` a one-video run directory each), the shared mesh and skeleton, ``videos.json``."""
+    run = tmp_path_factory.mktemp("view-videos") / "two"
+    run.mkdir()
+    for name in ("canonical.ply", "skeleton.json", "config.toml"):
+        shutil.copy2(run_dir / name, run)
+    metrics = {}
+    for name in ("a", "b"):
+        sub = run / "videos" / name
+        shutil.copytree(run_dir, sub, ignore=shutil.ignore_patterns("checkpoints", "cache", "config.toml", "log.jsonl"))
+        metrics[name] = json.loads((sub / "metrics.json").read_text())
+    z = dict(np.load(run_dir / "motion.npz"))
+    np.savez(run / "videos" / "b" / "motion.npz", **{k: a[B_FRAMES] if k in PER_FRAME else a for k, a in z.items()})
+    metrics["b"]["frames"] = len(B_FRAMES)
+    (run / "videos" / "b" / "metrics.json").write_text(json.dumps(metrics["b"]))
+    (run / "metrics.json").write_text(json.dumps({"videos": metrics, "mean": metrics["a"], "registration": {}}))
+    (run / "videos.json").write_text(json.dumps({"videos": ["a", "b"]}))
+    return run
+
+
 def _world(run: Path, t: int) -> np.ndarray:
     """Frame t's posed vertices from motion.npz, taken into the world frame through that frame's camera."""
-    import json
-
     z = np.load(run / "motion.npz")
     G = np.asarray(json.loads((run / "skeleton.json").read_text())["world_from_object"])
     c2w = G @ np.linalg.inv(z["root"][t])
@@ -215,6 +244,116 @@ def test_s3o_view_serves_a_run_on_a_free_port(run_dir):
         proc.wait(timeout=30)
 
 
+# ----------------------------------------------------------------------------------------- several videos
+def test_a_fit_of_several_videos_is_read_one_video_at_a_time(videos_run, run_dir):
+    a, b = load_view(videos_run), load_view(videos_run, video="b")
+    assert (a.videos, a.video, b.videos, b.video) == (["a", "b"], 0, ["a", "b"], 1)
+    assert (a.num_frames, b.num_frames) == (8, len(B_FRAMES)) and a.label == b.label == "finished fit"
+    assert b.source == videos_run / "videos" / "b" / "motion.npz"
+    for t in (0, len(B_FRAMES) - 1):  # each video's own motion.npz, in the world frame
+        np.testing.assert_allclose(b.verts[t], _world(videos_run / "videos" / "b", t), atol=1e-5)
+        np.testing.assert_allclose(b.verts[t], a.verts[B_FRAMES[t]], atol=1e-5)
+    assert b.frame_names == [a.frame_names[t] for t in B_FRAMES]
+    assert dict(figures(b.metrics))["frames"] == str(len(B_FRAMES)) and dict(figures(a.metrics))["frames"] == "8"
+    assert "[motion]" in b.config_text and b.sequence is not None
+    assert load_view(videos_run, video=1).num_frames == len(B_FRAMES)
+    one = load_view(run_dir)
+    assert (one.videos, one.video) == ([], 0)
+
+
+def test_the_video_selector_switches_the_mesh_frames_and_figures(videos_run, run_dir):
+    pytest.importorskip("viser")
+    from s3o_warp.view.server import ViewServer
+
+    srv = ViewServer(videos_run, port=0, poll_s=0)
+    try:
+        assert srv.video_select.options == ("a", "b") and srv.video_select.value == "a" and srv.view.video == 0
+        a0 = _world(videos_run / "videos" / "a", 0)
+        np.testing.assert_allclose(srv.plain.vertices, a0, atol=1e-5)
+        srv.slider.value = 7
+        srv.video_select.value = "b"  # what the page's selector sends
+        assert srv.view.video == 1 and srv.view.num_frames == len(B_FRAMES) and srv.frame == 0
+        assert srv.slider.max == len(B_FRAMES) - 1 and "video **b** (2 of 2)" in srv.header.content
+        b0 = _world(videos_run / "videos" / "b", 0)
+        np.testing.assert_allclose(srv.plain.vertices, b0, atol=1e-5)
+        assert np.abs(b0 - a0).max() > 1e-3  # the videos' meshes differ
+        assert f"| frames | {len(B_FRAMES)} |" in srv.figures_text.content  # b's own metrics.json
+        srv.slider.value = 2
+        np.testing.assert_allclose(srv.plain.vertices, _world(videos_run / "videos" / "b", 2), atol=1e-5)
+        np.testing.assert_allclose(srv.bones.points, srv.view.bone_segments(2), atol=1e-6)
+        srv.video_select.value = "a"
+        assert srv.view.video == 0 and srv.view.num_frames == 8
+        np.testing.assert_allclose(srv.plain.vertices, a0, atol=1e-5)
+        assert not srv.poll()  # nothing new
+    finally:
+        srv.close()
+    srv = ViewServer(videos_run, port=0, poll_s=0, video="b")
+    try:
+        assert srv.video_select.value == "b" and srv.view.num_frames == len(B_FRAMES)
+    finally:
+        srv.close()
+    srv = ViewServer(run_dir, port=0, poll_s=0)  # one video: no selector
+    try:
+        assert srv.video_select is None and srv.view.videos == []
+    finally:
+        srv.close()
+
+
+def test_a_running_fit_of_several_videos_shows_each_videos_frames(run_dir, videos_run, tmp_path):
+    running = tmp_path / "running"
+    shutil.copytree(run_dir, running, ignore=shutil.ignore_patterns("cache"))
+    for name in ("motion.npz", "metrics.json"):
+        (running / name).unlink()
+    whole = load_view(running)  # one video: every frame
+    assert whole.videos == [] and whole.num_frames == 8
+    newest = checkpoints(running)[-1]
+    st = torch.load(newest, weights_only=False)
+    sd = st["model"]
+    sd["video_of"] = torch.tensor([0] * 5 + [1] * 3)  # the same frames as two videos of 5 and 3
+    sd["log_focal"] = sd["log_focal"].reshape(1).repeat(2)  # one focal length per video, both the fit's
+    st["sequence"] = "left+right"  # the fit's name of its videos
+    torch.save(st, newest)
+    assert video_spans(sd) == [(0, 5), (5, 8)]
+    left, right = load_view(running), load_view(running, video="right")
+    assert (left.videos, left.video, right.video) == (["left", "right"], 0, 1)
+    assert (left.num_frames, right.num_frames) == (5, 3) and newest.name in right.label and right.metrics is None
+    np.testing.assert_allclose(left.verts, whole.verts[:5], atol=1e-5)
+    np.testing.assert_allclose(right.verts, whole.verts[5:], atol=1e-5)
+    np.testing.assert_allclose(right.K, whole.K[5:], atol=1e-6)
+    st["sequence"] = "quad"  # names that do not split into the videos: numbered
+    torch.save(st, newest)
+    assert load_view(running, video="video 1").videos == ["video 0", "video 1"]
+    with pytest.raises(InputError, match="video 0, video 1"):
+        load_view(running, video="right")
+    pytest.importorskip("viser")
+    from s3o_warp.view.server import ViewServer
+
+    srv = ViewServer(running, port=0, poll_s=0, video="video 1")
+    try:
+        assert srv.video_select.options == ("video 0", "video 1") and srv.view.num_frames == 3
+        for name, src in (("left", "a"), ("right", "b")):  # the fit ends: each video's run directory, written now
+            shutil.copytree(videos_run / "videos" / src, running / "videos" / name, copy_function=shutil.copy)
+        (running / "videos.json").write_text(json.dumps({"videos": ["left", "right"]}))
+        assert srv.poll()
+        assert srv.video_select.options == ("left", "right") and srv.video_select.value == "right"
+        assert srv.view.video == 1 and srv.view.label == "finished fit" and srv.view.num_frames == len(B_FRAMES)
+    finally:
+        srv.close()
+
+
+def test_s3o_view_video_picks_the_video_shown_first(videos_run, monkeypatch, capsys):
+    pytest.importorskip("viser")
+
+    class Stopped:  # the server starts, prints its line and is stopped at once, as Ctrl-C stops it
+        def wait(self):
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "threading", SimpleNamespace(Event=Stopped))  # cli's own, not the threading module
+    assert cli.main([str(videos_run), "--port", "0", "--poll", "0", "--video", "b"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("s3o-view: http://127.0.0.1:") and ", video b of 2 (finished fit)" in out, out
+
+
 # ---------------------------------------------------------------------------------------------- bad input
 def _one_line_exit_2(capsys, argv, *words):
     assert cli.main(argv) == 2
@@ -240,6 +379,12 @@ def test_bad_input_is_one_line_and_exit_2(run_dir, tmp_path, capsys):
     with pytest.raises(InputError, match="motion.npz"):
         load_view(broken)
     _one_line_exit_2(capsys, [str(run_dir), "--sequence", str(tmp_path / "frames")], "--sequence")
+    _one_line_exit_2(capsys, [str(run_dir), "--video", "a"], "--video a", "one video")
+
+
+def test_a_video_the_run_lacks_is_one_line_naming_its_videos(videos_run, capsys):
+    pytest.importorskip("viser")
+    _one_line_exit_2(capsys, [str(videos_run), "--video", "c"], "--video c", "its videos: a, b")
 
 
 def test_without_viser_one_line_names_the_install(run_dir, monkeypatch, capsys):

@@ -47,6 +47,7 @@ class CoarseResult:
     face_parts: torch.Tensor  # (F,) part index of each face
     joints: tuple = ((), ())  # (bone pairs (J,2), positions (J,3)) in the object frame
     limb_pairs: tuple = ()  # crossings.LimbPair per symmetric limb pair of the lift (one bone each)
+    anchors: tuple = ()  # several videos: each video's anchor frame (the canonical frame in its own video)
 
 
 def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
@@ -60,7 +61,7 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
         log.info("canonical frame %d (coarse.canonical_frame)", c)
     skel = skeleton2d.skeleton_2d(masks[c], settings)
     S = data.crop_size
-    H, W = data.frame_size
+    H, W = data.frame_size if data.num_videos == 1 else next(v.frame_size for v in data.videos if v.start <= c < v.stop)
     f_full = 0.5 * W / math.tan(math.radians(cfg.coarse.fov_degrees) / 2)
     f_crop = f_full * float(data.crop_scale[c])
     Kc = np.array([[f_crop, 0, (S - 1) / 2], [0, f_crop, (S - 1) / 2], [0, 0, 1]], dtype=np.float64)
@@ -85,6 +86,9 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
     vpart = edge_of_bone[maha.argmin(1)]
     ft = torch.as_tensor(faces, dtype=torch.int64)
     fpart = torch.mode(vpart[ft], dim=1).values
+    focal, video_of, motion_of, anchors = float(f_full), None, None, ()
+    if data.num_videos > 1:
+        focal, video_of, motion_of, anchors = _videos(data, cfg, masks, c, settings)
     root_R = torch.as_tensor(root[:3, :3], dtype=torch.float32).expand(T, 3, 3).clone()
     root_t = torch.as_tensor(root[:3, 3], dtype=torch.float32).expand(T, 3).clone()
     if cfg.motion.principal_point == "shared":  # the object as each crop's centre showed it, one principal point
@@ -99,12 +103,14 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
         log_scales=torch.as_tensor(np.log(np.maximum(lam, 1e-8)), dtype=torch.float32),
         root_R=root_R,
         root_t=root_t,
-        focal=float(f_full),
+        focal=focal,
         crop_scale=data.crop_scale.cpu(),
         crop_size=S,
         crop_to_frame=data.crop_to_frame.cpu(),
         principal_point=cfg.motion.principal_point,
         frame_size=(H, W),
+        video_of=video_of,
+        motion_of=motion_of,
     )
     return CoarseResult(
         init=init,
@@ -115,7 +121,29 @@ def coarse_model(data: FitData, cfg: Config) -> CoarseResult:
         limb_pairs=limb_pairs,
         part_masks=torch.as_tensor(parts, dtype=torch.float32),
         face_parts=fpart,
+        anchors=anchors,
     )
+
+
+def _videos(data: FitData, cfg: Config, masks: np.ndarray, canonical: int, settings):
+    """Several videos: each one's focal length (from its own frame width), the video and bone-motion row of every
+    frame (synchronized videos share rows frame by frame) and each video's anchor frame (the canonical frame in the
+    canonical frame's video, else the frame the canonical rule picks in that video alone)."""
+    vids = data.videos
+    focal = [0.5 * v.frame_size[1] / math.tan(math.radians(cfg.coarse.fov_degrees) / 2) for v in vids]
+    video_of = torch.as_tensor(data.video_of())
+    if cfg.motion.synchronized:
+        motion_of = torch.cat([torch.arange(v.num_frames) for v in vids])
+    else:
+        motion_of = torch.arange(data.num_frames)
+    anchors = []
+    for v in vids:
+        if v.start <= canonical < v.stop:
+            anchors.append(int(canonical))
+        else:
+            k, _ = skeleton2d.canonical_frame(list(masks[v.start:v.stop]), settings, progress=False)
+            anchors.append(v.start + int(k))
+    return focal, video_of, motion_of, tuple(anchors)
 
 
 def _limb_pairs(lifted, bones) -> tuple:

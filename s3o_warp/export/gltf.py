@@ -1,4 +1,5 @@
-"""Rigged, animated glTF 2.0 binary (``.glb``) export of a :class:`~s3o_warp.export.rig.Rig`.
+"""Rigged, animated glTF 2.0 binary (``.glb``) export of a :class:`~s3o_warp.export.rig.Rig`, or of one object
+fitted to several videos (one Rig per video, :func:`export_gltf_videos`).
 
 Contents (everything in the WORLD frame, Y up, metres = scene units):
 
@@ -17,6 +18,11 @@ Contents (everything in the WORLD frame, Y up, metres = scene units):
   frame that puts the posed vertices where the frame's own intrinsics put them); the largest pixel
   error left on the posed vertices is reported as ``ExportReport.camera_px_error``. Use the USD export
   for pixel-exact cameras.
+
+Several videos share the mesh, the skin and the skeleton; each video has its own camera node
+``camera_<name>`` (and glTF camera) and its own animation ``<name>`` of the joints and that camera
+node, frame k at time k / fps of that video; the file's ``extras`` list each video's name, fps,
+frame names and image size.
 """
 
 from __future__ import annotations
@@ -157,10 +163,71 @@ def export_gltf(rig: Rig, path: str | os.PathLike) -> ExportReport:
     Raises:
         InputError: the extension is not ``.glb`` or the output folder does not exist.
     """
+    return _write_glb([rig], ["Camera"], ["Motion"], _video_extras(rig), path)
+
+
+def export_gltf_videos(rigs: list[Rig], names: list[str], path: str | os.PathLike) -> ExportReport:
+    """Write one object fitted to several videos as one ``.glb``: one mesh and skin, and per video a camera node
+    ``camera_<name>`` and an animation ``<name>`` of the joints and that camera (as :func:`export_gltf`).
+
+    Args:
+        rigs: one :class:`Rig` per video, equal in mesh, colours, weights and skeleton.
+        names: one unique, non-empty name per video.
+        path: output ``.glb`` file, written atomically.
+
+    Returns:
+        An :class:`~s3o_warp.export.usd.ExportReport` holding the worst of each figure over the videos.
+
+    Raises:
+        InputError: no rigs, names missing, empty or repeated, rigs differing in a shared field, the extension is
+            not ``.glb`` or the output folder does not exist.
+    """
+    names = check_one_object(rigs, names)
+    extras = {"videos": [{"name": n, **_video_extras(r)} for r, n in zip(rigs, names)]}
+    return _write_glb(rigs, [f"camera_{n}" for n in names], names, extras, path)
+
+
+#: Rig fields that the videos of one object share (one mesh, skin and skeleton in the file).
+SHARED_FIELDS = ("verts", "faces", "colors", "weights", "bone_names", "parents", "bind", "world_from_object")
+
+
+def check_one_object(rigs: list[Rig], names: list[str]) -> list[str]:
+    """The video names as strings, once ``rigs`` are checked to be one object (equal :data:`SHARED_FIELDS`).
+
+    Raises:
+        InputError: no rigs, not one name per rig, an empty or repeated name, or a shared field that differs.
+    """
+    names = [str(n) for n in names]
+    if not rigs:
+        raise InputError("export_gltf_videos: needs the rig of at least one video")
+    if len(names) != len(rigs):
+        raise InputError(f"export_gltf_videos: need one name per video ({len(rigs)}), got {len(names)}")
+    if any(not n.strip() for n in names) or len(set(names)) != len(names):
+        raise InputError(f"export_gltf_videos: video names must be non-empty and unique, got {names}")
+    for name, rig in zip(names[1:], rigs[1:]):
+        for f in SHARED_FIELDS:
+            a, b = getattr(rigs[0], f), getattr(rig, f)
+            if np.shape(a) != np.shape(b) or not np.array_equal(a, b):
+                raise InputError(
+                    f"export_gltf_videos: Rig.{f} of video {name!r} differs from video {names[0]!r}'s; "
+                    "the videos of one object share the mesh, colours, weights and skeleton"
+                )
+    return names
+
+
+def _video_extras(rig: Rig) -> dict:
+    return {"fps": rig.fps, "frame_names": rig.frame_names, "image_size": list(rig.image_size)}
+
+
+def _write_glb(
+    rigs: list[Rig], camera_names: list[str], animation_names: list[str], extras: dict, path: str | os.PathLike
+) -> ExportReport:
+    """The ``.glb`` of one object (mesh and skeleton of ``rigs[0]``) with one camera node and one animation per rig."""
     path = Path(path)
     if path.suffix.lower() != ".glb":
         raise InputError(f"{path}: a glTF export needs the extension .glb")
-    t_count, b_count = rig.num_frames, rig.num_bones
+    rig = rigs[0]
+    b_count = rig.num_bones
     k = min(GLTF_INFLUENCES, b_count)
     gltf = g.GLTF2(asset=g.Asset(version="2.0", generator="s3o-warp"))
     gltf.scene = 0
@@ -207,6 +274,38 @@ def export_gltf(rig: Rig, path: str | os.PathLike) -> ExportReport:
     mesh_node = len(gltf.nodes)
     gltf.nodes.append(g.Node(name="Mesh", mesh=0, skin=0))
 
+    cam_nodes, cam_errs, topk_errs = [], [], []
+    for video, cam_name, anim_name in zip(rigs, camera_names, animation_names):
+        node, cam_err = _add_video(gltf, blob, video, order, cam_name, anim_name)
+        cam_nodes.append(node)
+        cam_errs.append(cam_err)
+        topk_errs.append(top_k_error(video, k))
+
+    gltf.scenes.append(g.Scene(name="Scene", nodes=[0, mesh_node, *cam_nodes]))
+    gltf.extras = extras
+    gltf.buffers.append(g.Buffer(byteLength=len(blob.data)))
+    gltf.set_binary_blob(bytes(blob.data))
+
+    err = max(e[0] for e in topk_errs), max(e[1] for e in topk_errs)
+    cam_err = max(cam_errs)
+    with atomic_path(path) as tmp:
+        gltf.save_binary(str(tmp))
+    logger.info(
+        "wrote %s (%d video(s), %s frames, %d bones, top-%d error %.3g = %.2g of the bbox diagonal, "
+        "camera model error %.3g px)",
+        path, len(rigs), "+".join(str(r.num_frames) for r in rigs), b_count, k, err[0], err[1], cam_err,
+    )
+    return ExportReport(path=path, influences=k, topk_error=err[0], topk_error_rel=err[1], camera_px_error=cam_err)
+
+
+def _add_video(gltf, blob: _Blob, rig: Rig, order: list[int], cam_name: str, anim_name: str) -> tuple[int, float]:
+    """Add ``rig``'s camera (node ``cam_name``) and its animation ``anim_name`` of the joints and that camera node.
+
+    Returns:
+        (the camera node, the camera model's pixel error :func:`gltf_camera_error`).
+    """
+    t_count, b_count = rig.num_frames, rig.num_bones
+
     # -------------------------------------------------------------- camera
     h, w = rig.image_size
     cam_pts = rig.posed_camera()
@@ -214,7 +313,7 @@ def export_gltf(rig: Rig, path: str | os.PathLike) -> ExportReport:
     focal = float(np.median(rig.K[:, 1, 1]))
     gltf.cameras.append(
         g.Camera(
-            name="Camera",
+            name=cam_name,
             type="perspective",
             perspective=g.Perspective(
                 yfov=float(2 * np.arctan(h / (2 * focal))),
@@ -228,8 +327,9 @@ def export_gltf(rig: Rig, path: str | os.PathLike) -> ExportReport:
     c2w = glb_camera_to_world(rig, folds)
     cam_node = len(gltf.nodes)
     cam_t, cam_q = decompose_rigid(c2w)
-    gltf.nodes.append(g.Node(name="Camera", camera=0, translation=cam_t[0].tolist(), rotation=cam_q[0].tolist()))
-    cam_err = gltf_camera_error(rig, focal, cam_pts, folds)
+    gltf.nodes.append(
+        g.Node(name=cam_name, camera=len(gltf.cameras) - 1, translation=cam_t[0].tolist(), rotation=cam_q[0].tolist())
+    )
 
     # -------------------------------------------------------------- animation
     local = np.stack([rig.local_transforms(rig.bone_world(t))[order] for t in range(t_count)])
@@ -247,18 +347,5 @@ def export_gltf(rig: Rig, path: str | os.PathLike) -> ExportReport:
         channel(j, "rotation", anim_q[:, j])
     channel(cam_node, "translation", cam_t)
     channel(cam_node, "rotation", cam_q)
-    gltf.animations.append(g.Animation(name="Motion", samplers=samplers, channels=channels))
-
-    gltf.scenes.append(g.Scene(name="Scene", nodes=[0, mesh_node, cam_node]))
-    gltf.extras = {"fps": rig.fps, "frame_names": rig.frame_names, "image_size": list(rig.image_size)}
-    gltf.buffers.append(g.Buffer(byteLength=len(blob.data)))
-    gltf.set_binary_blob(bytes(blob.data))
-
-    err = top_k_error(rig, k)
-    with atomic_path(path) as tmp:
-        gltf.save_binary(str(tmp))
-    logger.info(
-        "wrote %s (%d frames, %d bones, top-%d error %.3g = %.2g of the bbox diagonal, camera model error %.3g px)",
-        path, t_count, b_count, k, err[0], err[1], cam_err,
-    )
-    return ExportReport(path=path, influences=k, topk_error=err[0], topk_error_rel=err[1], camera_px_error=cam_err)
+    gltf.animations.append(g.Animation(name=anim_name, samplers=samplers, channels=channels))
+    return cam_node, gltf_camera_error(rig, focal, cam_pts, folds)

@@ -17,11 +17,15 @@ from s3o_warp.errors import InputError
 from s3o_warp.masks.make import SEGMENTERS, make_masks, parse_box, parse_box_at
 
 
-def add_box_arguments(p: argparse.ArgumentParser) -> None:
-    """The flags that describe the object (shared with ``s3o-fit``)."""
-    p.add_argument("--box", default=None, metavar="X0,Y0,X1,Y1",
-                   help="a box around the object on frame --frame, in that frame's pixels (left, top, right, bottom)")
-    p.add_argument("--frame", type=int, default=0, metavar="K", help="the frame --box is drawn on (default 0)")
+def add_box_arguments(p: argparse.ArgumentParser, per_video: bool = False) -> None:
+    """The flags that describe the object (shared with ``s3o-fit``, where ``per_video`` lets --box and --frame be
+    given once per video)."""
+    each = " (several videos: once per video, in their order)" if per_video else ""
+    p.add_argument("--box", default=None, metavar="X0,Y0,X1,Y1", action="append" if per_video else "store",
+                   help="a box around the object on frame --frame, in that frame's pixels (left, top, right, bottom)"
+                   + each)
+    p.add_argument("--frame", type=int, default=None if per_video else 0, metavar="K",
+                   action="append" if per_video else "store", help="the frame --box is drawn on (default 0)" + each)
     p.add_argument("--box-at", dest="box_at", action="append", default=[], metavar="K:X0,Y0,X1,Y1",
                    help="a further box on frame K (repeatable): where the object is lost, or changes much")
     p.add_argument("--segmenter", default="grabcut", help=f"one of {', '.join(SEGMENTERS)}: grabcut (default, OpenCV "
@@ -30,11 +34,12 @@ def add_box_arguments(p: argparse.ArgumentParser) -> None:
                    "(e.g. sam2.1_hiera_tiny.pt, downloaded once; never fetched here)")
 
 
-def boxes_from(args) -> dict:
-    """``{frame: box}`` from --box/--frame and every --box-at."""
+def boxes_from(args, box=None, frame=None) -> dict:
+    """``{frame: box}`` from --box/--frame (or the given ``box`` and ``frame``) and every --box-at."""
     boxes = {}
-    if args.box is not None:
-        boxes[args.frame] = parse_box(args.box)
+    box = args.box if box is None else box
+    if box is not None:
+        boxes[args.frame if frame is None else frame] = parse_box(box)
     for item in args.box_at:
         k, b = parse_box_at(item)
         if k in boxes:

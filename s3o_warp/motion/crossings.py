@@ -191,23 +191,40 @@ def resolve_crossings(bone_aa: torch.Tensor, bone_t: torch.Tensor, centres: torc
 __all__ = ["LimbPair", "crossing_labels", "exchange_costs", "exchanged_motion", "resolve_crossings"]
 
 
-def resolve_model_crossings(model, opt: torch.optim.Optimizer, pairs: list[LimbPair], canonical: int) -> list[int]:
+def resolve_model_crossings(model, opt: torch.optim.Optimizer, pairs: list[LimbPair], canonical: int,
+                            videos: list[tuple[int, int, int]] | None = None) -> list[int]:
     """:func:`resolve_crossings` on the model's bone motion, the feet compared where the fitted camera shows them
     (full-frame pixels); Adam's moments of every rewritten frame start afresh (they were the partner's). Returns
-    the number of exchanged frames per pair."""
+    the number of exchanged frames per pair.
+
+    ``videos``: ``(start, stop, anchor)`` of each video, each followed on its own from its anchor frame (the rows
+    synchronized videos share are followed once, in the first video listed); None: one video, from ``canonical``."""
     m = model
     before = (m.bone_aa.detach().clone(), m.bone_t.detach().clone())
-    with torch.no_grad():
-        fr = torch.arange(m.num_frames, device=m.bone_aa.device)
-        Rt = m.root_rt(fr).double().cpu()
-        Kf = m.intrinsics_frame(fr).double().cpu()
+    spans = videos or [(0, m.num_frames, canonical)]
+    total = [0] * len(pairs)
+    done: set[int] = set()
+    for a, b, anchor in spans:
+        rows = m.motion_of[a:b]
+        if int(rows[0]) in done or not pairs:
+            continue
+        done.update(rows.tolist())
+        with torch.no_grad():
+            fr = torch.arange(a, b, device=m.bone_aa.device)
+            Rt = m.root_rt(fr).double().cpu()
+            Kf = m.intrinsics_frame(fr).double().cpu()
 
-    def image(P: np.ndarray) -> np.ndarray:
-        """Object-frame points (T, 3), one per frame -> full-frame pixels (T, 2)."""
-        cam = (Rt[:, :, :3] @ torch.as_tensor(P, dtype=torch.float64)[..., None])[..., 0] + Rt[:, :, 3]
-        return project(cam[:, None], Kf)[:, 0].numpy()
+        def image(P: np.ndarray, Rt=Rt, Kf=Kf) -> np.ndarray:
+            """Object-frame points (T, 3), one per frame -> full-frame pixels (T, 2)."""
+            cam = (Rt[:, :, :3] @ torch.as_tensor(P, dtype=torch.float64)[..., None])[..., 0] + Rt[:, :, 3]
+            return project(cam[:, None], Kf)[:, 0].numpy()
 
-    counts = resolve_crossings(m.bone_aa, m.bone_t, m.bone_centers, pairs, canonical, project=image) if pairs else []
+        aa, tt = m.bone_aa.detach()[rows].clone(), m.bone_t.detach()[rows].clone()
+        counts = resolve_crossings(aa, tt, m.bone_centers, pairs, anchor - a, project=image)
+        with torch.no_grad():
+            m.bone_aa.data[rows] = aa
+            m.bone_t.data[rows] = tt
+        total = [x + y for x, y in zip(total, counts)]
     for p, old in zip((m.bone_aa, m.bone_t), before):
         st = opt.state.get(p)
         changed = (p.detach() != old).any(-1)
@@ -215,4 +232,4 @@ def resolve_model_crossings(model, opt: torch.optim.Optimizer, pairs: list[LimbP
             for key in ("exp_avg", "exp_avg_sq"):
                 if key in st:
                     st[key][changed] = 0
-    return counts
+    return total if pairs else []

@@ -18,7 +18,9 @@ import torch
 from tqdm import tqdm
 
 from s3o_warp import interrupt
+from s3o_warp.errors import InputError
 from s3o_warp.geometry import axis_angle_to_matrix
+from s3o_warp.motion.losses import soft_iou
 
 log = logging.getLogger(__name__)
 
@@ -28,6 +30,14 @@ second round): after ``motion.hypothesis_steps`` the scores of neighbouring turn
 per cent (DAVIS dog: within 1.5 %; after the second round the rate the other seeds pick leads by 5-10 %)."""
 HYPOTHESIS_REFINE_STEPS = 60
 """Further steps of each refined hypothesis."""
+ORIENTATIONS = 8
+"""Root orientations about the object's vertical axis tried for each video after the first (several videos of one
+object, unknown cameras): evenly spaced, 0 included (360 / 8 = 45 degrees apart)."""
+ORIENTATION_STEPS = 30
+"""Steps (root and camera free, on the video's anchor window) each orientation is fitted for before it is scored."""
+MIN_ORIENTATION_IOU = 0.3
+"""A video whose best orientation's mask IoU on its anchor window stays under this fits no orientation of the body
+(another object, or masks of something else): refused with one line naming it."""
 
 
 @dataclass
@@ -45,6 +55,11 @@ class Search:
         refined: the second round's score of each finished finalist, by rate.
         steps_done: steps already taken by the hypothesis in training.
         opt_state: its optimiser's state, when the search was read from a checkpoint.
+        video: the video searched (several videos), -1 for the whole sequence (one video).
+        yaws: the video's orientations about the vertical to try first (degrees; empty: the reference video).
+        yaw_scores, yaw_ious: each finished orientation's score (silhouette and flow terms on the anchor window) and
+            mask IoU there.
+        chosen: each video already searched: its orientation, turn rate and scores.
     """
 
     rates: list[float]
@@ -56,6 +71,11 @@ class Search:
     refined: dict[float, float] = field(default_factory=dict)
     steps_done: int = 0
     opt_state: dict | None = None
+    video: int = -1
+    yaws: list[float] = field(default_factory=list)
+    yaw_scores: list[float] = field(default_factory=list)
+    yaw_ious: list[float] = field(default_factory=list)
+    chosen: list[dict] = field(default_factory=list)
 
     def state_dict(self) -> dict:
         """What a checkpoint keeps (the optimiser in training is the checkpoint's own)."""
@@ -66,6 +86,8 @@ class Search:
         return cls(**state, opt_state=opt_state)
 
     def where(self) -> str:
+        if len(self.yaw_scores) < len(self.yaws):
+            return f"video {self.video}, orientation {len(self.yaw_scores) + 1} of {len(self.yaws)}, step {self.steps_done}"
         if len(self.scores) < len(self.rates):
             return f"turn rate {len(self.scores) + 1} of {len(self.rates)}, step {self.steps_done}"
         return f"finalist {len(self.refined) + 1} of {len(self.top or [])}, step {self.steps_done}"
@@ -93,9 +115,44 @@ def _refining() -> bool:
     return HYPOTHESIS_REFINE > 1 and HYPOTHESIS_REFINE_STEPS > 0
 
 
+def _new_search(fit, video: int, chosen: list[dict]) -> Search:
+    mc, m = fit.cfg.motion, fit.model
+    rates = np.linspace(-mc.hypothesis_max_rate, mc.hypothesis_max_rate, mc.hypotheses)
+    if 0.0 not in rates:
+        rates = np.append(rates, 0.0)
+    rates = [float(mc.turn_rate)] if mc.turn_rate is not None else [0.0] if mc.hypotheses == 1 else \
+        [float(r) for r in rates]
+    yaws = [] if video < 0 or video == fit.reference_video else [360.0 * k / ORIENTATIONS for k in range(ORIENTATIONS)]
+    return Search(rates=rates, base=copy.deepcopy(m.state_dict()), gen_state=fit.gen.get_state(), video=video,
+                  yaws=yaws, chosen=list(chosen))
+
+
+def select_hypotheses(fit, search: Search | None = None) -> list[dict]:
+    """:func:`select_hypothesis` for every video of the fit, the reference video (the canonical frame's) first, then
+    each other video's orientation and turn rate against the shape fitted so far; returns each video's choice."""
+    if fit.data.num_videos == 1:
+        return [{"video": 0, "yaw_deg": 0.0, "turn_rate": select_hypothesis(fit, search)}]
+    order = [fit.reference_video] + [v for v in range(fit.data.num_videos) if v != fit.reference_video]
+    if search is None:
+        search = _new_search(fit, order[0], [])
+    for v in order[order.index(search.video):]:
+        if search is None:
+            search = _new_search(fit, v, chosen)
+        select_hypothesis(fit, search)
+        chosen, search = search.chosen, None
+    for c in chosen:
+        fit.data.videos[c["video"]].registration = c
+    return chosen
+
+
 def select_hypothesis(fit, search: Search | None = None) -> float:
     """Score root-rotation hypotheses (constant turn rates about the object's vertical axis) by a short
     warm-up each and keep the best (LASR/S3O's camera hypotheses); returns the chosen rate (deg/frame).
+
+    With several videos ``search.video`` is the one searched (its frames only; the others keep their roots), and a
+    video other than the reference first tries :data:`ORIENTATIONS` turns of the body about the vertical on its
+    anchor window, each fitted for :data:`ORIENTATION_STEPS` steps (root and camera) and scored by the silhouette
+    and flow terms there; the rates then turn the video from its best orientation.
 
     ``fit`` is the loop (:class:`s3o_warp.fit.Fitter`): its model, optimiser, generator and step are used and
     left as the warm-up starts from them (the chosen turn applied, a fresh optimiser, the generator as before).
@@ -103,21 +160,34 @@ def select_hypothesis(fit, search: Search | None = None) -> float:
     requested; ``search`` (read from such a checkpoint) goes on from there.
     """
     mc, m = fit.cfg.motion, fit.model
-    T, c = m.num_frames, fit.coarse.canonical
     if search is None:
-        rates = np.linspace(-mc.hypothesis_max_rate, mc.hypothesis_max_rate, mc.hypotheses)
-        if 0.0 not in rates:
-            rates = np.append(rates, 0.0)
-        rates = [float(mc.turn_rate)] if mc.turn_rate is not None else [float(r) for r in rates]
-        search = Search(rates=rates, base=copy.deepcopy(m.state_dict()), gen_state=fit.gen.get_state())
+        search = _new_search(fit, -1, [])
+    v = search.video
+    if v < 0:
+        a, b, c = 0, m.num_frames, fit.coarse.canonical
+        name = None
+    else:
+        a, b = fit.windows.videos[v]
+        c, name = fit.windows.anchors[v], fit.data.videos[v].name
+    n = min(mc.batch_frames, b - a)
+    anchor_window = torch.arange(min(max(c - n // 2, a), b - n), min(max(c - n // 2, a), b - n) + n, device=fit.device)
 
-    def apply(rate: float) -> None:
+    def apply(rate: float, yaw: float = 0.0) -> None:
         m.load_state_dict(search.base)
-        ang = torch.deg2rad(torch.tensor(rate * (np.arange(T) - c), dtype=torch.float32, device=fit.device))
-        aa = torch.zeros(T, 3, device=fit.device)
+        ang = torch.deg2rad(torch.tensor(yaw + rate * (np.arange(a, b) - c), dtype=torch.float32, device=fit.device))
+        aa = torch.zeros(b - a, 3, device=fit.device)
         aa[:, 1] = ang
         with torch.no_grad():
-            m.root_R0.copy_(search.base["root_R0"] @ axis_angle_to_matrix(aa))
+            Ry = axis_angle_to_matrix(aa)
+            m.root_R0[a:b].copy_(search.base["root_R0"][a:b] @ Ry)
+            if v >= 0:  # several videos: turned about the body's centre, not the lift's origin (off to one side)
+                verts = search.base["verts"]
+                p = 0.5 * (verts.min(0).values + verts.max(0).values)
+                R = axis_angle_to_matrix(search.base["root_aa"][a:b]) @ search.base["root_R0"][a:b]
+                m.root_t[a:b] = search.base["root_t"][a:b] + R @ p - (R @ Ry) @ p
+
+    def best_yaw() -> float:
+        return search.yaws[int(np.argmin(search.yaw_scores))] if search.yaws else 0.0
 
     def optimiser(state: dict | None = None) -> torch.optim.Optimizer:
         """Only the root and the camera are free: with the bones free too, they absorb a wrong turn."""
@@ -128,21 +198,19 @@ def select_hypothesis(fit, search: Search | None = None) -> float:
             opt.load_state_dict(state)
         return opt
 
-    def train(steps: int, bar: tqdm) -> float:
-        """The rest of ``steps`` warm-up steps on random windows from the current state, then this hypothesis'
-        score: its flow error over every pair of frames 1-32 apart, the mean over the gaps
-        (:func:`~s3o_warp.motion.objective.flow_by_gap`: texture motion tells a turn from a deformation, and a wrong
-        turn rate grows with the gap), or the whole loss when the sequence has no flow term."""
+    def steps_to(steps: int, bar: tqdm, window=None) -> bool:
+        """The rest of ``steps`` warm-up steps on random windows (of the video; or ``window`` always) from the
+        current state; False when the loss went NaN/Inf."""
         fit.step = search.steps_done
         while fit.step < steps:
-            frames = fit.windows.random()
+            frames = fit.windows.random(None if v < 0 else v) if window is None else window
             fit.opt.zero_grad(set_to_none=True)
             terms, _, _ = fit.motion_losses(frames)
-            total = sum(w * v for w, v in terms.values())
+            total = sum(w * v_ for w, v_ in terms.values())
             if not torch.isfinite(total):
                 bar.update(steps - fit.step)
                 fit.step = 0
-                return float("inf")
+                return False
             total.backward()
             fit.step_window(frames)
             fit.step += 1
@@ -150,24 +218,33 @@ def select_hypothesis(fit, search: Search | None = None) -> float:
             bar.update(1)
             fit.stop_point(search)
         fit.step = 0
+        return True
+
+    def train(steps: int, bar: tqdm) -> float:
+        """:func:`steps_to`, then this hypothesis' score: its flow error over every pair of frames 1-32 apart, the
+        mean over the gaps (:func:`~s3o_warp.motion.objective.flow_by_gap`: texture motion tells a turn from a
+        deformation, and a wrong turn rate grows with the gap), or the whole loss when the sequence has no flow
+        term."""
+        if not steps_to(steps, bar):
+            return float("inf")
         try:
             if mc.w_flow > 0:
-                by_gap = fit.flow_by_gap()
+                by_gap = fit.flow_by_gap() if v < 0 else fit.flow_by_gap((a, b))
                 log.debug("camera hypothesis: flow error by gap %s",
-                          ", ".join(f"{g}: {v:.3f}" for g, v in by_gap.items()))
+                          ", ".join(f"{g}: {v_:.3f}" for g, v_ in by_gap.items()))
                 return float(np.mean(list(by_gap.values())))
-            return sum(fit.mean_terms().values())
+            return sum((fit.mean_terms() if v < 0 else fit.mean_terms((a, b))).values())
         except interrupt.Interrupted:  # stopped while scoring: the checkpoint has every step, the score is redone
             fit.stop_point(search)
             raise
 
-    def start(rate: float | None, snap=None) -> None:
+    def start(rate: float | None, snap=None, yaw: float = 0.0) -> None:
         """The hypothesis to train: a fresh one (``rate``, or a first-round ``snap`` going on), or the one the
         checkpoint holds (the fit's model and generator are already its own)."""
         if search.steps_done:
             fit.opt = optimiser(search.opt_state)
         elif snap is None:
-            apply(rate)
+            apply(rate, yaw)
             fit.gen.set_state(search.gen_state)
             fit.opt = optimiser()
         else:
@@ -176,16 +253,39 @@ def select_hypothesis(fit, search: Search | None = None) -> float:
             fit.gen.set_state(search.snaps[0][2])  # the same windows for every finalist
         search.opt_state = None
 
-    if mc.turn_rate is None:
+    if search.yaws:
+        with tqdm(total=len(search.yaws) * ORIENTATION_STEPS, initial=len(search.yaw_scores) * ORIENTATION_STEPS
+                  + search.steps_done, desc=f"orient {name}", unit="step", dynamic_ncols=True, leave=True) as bar:
+            while len(search.yaw_scores) < len(search.yaws):
+                yaw = search.yaws[len(search.yaw_scores)]
+                bar.set_postfix(yaw=f"{yaw:.0f}")
+                start(0.0, yaw=yaw)
+                ok = steps_to(ORIENTATION_STEPS, bar, anchor_window)
+                with torch.no_grad():
+                    terms, sil, mask = fit.motion_losses(anchor_window)
+                score = sum(float(w * t) for k, (w, t) in terms.items() if k in ("sil", "flow")) if ok else float("inf")
+                search.yaw_scores.append(score)
+                search.yaw_ious.append(float(soft_iou((sil > 0.5).float(), mask).mean()) if ok else 0.0)
+                search.steps_done = 0
+                fit.stop_point(search)
+        k = int(np.argmin(search.yaw_scores))
+        if search.yaw_ious[k] < MIN_ORIENTATION_IOU:
+            raise InputError(
+                f"video '{name}' fits no orientation of the body seen in the other videos (best mask IoU "
+                f"{search.yaw_ious[k]:.2f} at {search.yaws[k]:.0f} degrees on frames {int(anchor_window[0]) - a}-"
+                f"{int(anchor_window[-1]) - a}); is it the same object? leave it out or check its masks")
+
+    if len(search.rates) > 1:
         steps = len(search.rates) * mc.hypothesis_steps
         steps += min(HYPOTHESIS_REFINE, len(search.rates)) * HYPOTHESIS_REFINE_STEPS if _refining() else 0
         done = (len(search.scores) * mc.hypothesis_steps + len(search.refined) * HYPOTHESIS_REFINE_STEPS
                 + search.steps_done)
-        with tqdm(total=steps, initial=done, desc="hypotheses", unit="step", dynamic_ncols=True, leave=True) as bar:
+        with tqdm(total=steps, initial=done, desc="hypotheses" + (f" {name}" if name else ""), unit="step",
+                  dynamic_ncols=True, leave=True) as bar:
             while len(search.scores) < len(search.rates):
                 rate = search.rates[len(search.scores)]
                 bar.set_postfix(rate=f"{rate:+.2f}")
-                start(rate)
+                start(rate, yaw=best_yaw())
                 score = train(mc.hypothesis_steps, bar)
                 search.scores.append(score)
                 search.snaps.append((copy.deepcopy(m.state_dict()), copy.deepcopy(fit.opt.state_dict()),
@@ -211,14 +311,31 @@ def select_hypothesis(fit, search: Search | None = None) -> float:
             best = v_minimum(list(refined), list(refined.values()), best)
     else:
         scores, refined, best = [float("nan")], {}, search.rates[0]
-    apply(best)
+    yaw = best_yaw()
+    apply(best, yaw)
     m.visited.zero_()
     fit.gen.set_state(search.gen_state)
     fit.opt = fit.make_optimizer()
-    fit.record({"phase": "eval", "step": 0, "seconds": round(time.perf_counter() - fit.t0, 3), "what": "hypotheses",
-               "rates_deg_per_frame": search.rates, "scores": scores,
-               "refined": {f"{r:g}": v for r, v in refined.items()}, "chosen": best})
-    log.info("camera hypotheses: turn rate %.2f deg/frame chosen (scores %s%s)", best,
-             ", ".join(f"{x:.4f}" for x in scores),
-             "; refined " + ", ".join(f"{r:g}: {v:.4f}" for r, v in refined.items()) if refined else "")
+    rec = {"phase": "eval", "step": 0, "seconds": round(time.perf_counter() - fit.t0, 3), "what": "hypotheses",
+           "rates_deg_per_frame": search.rates, "scores": scores,
+           "refined": {f"{r:g}": v_ for r, v_ in refined.items()}, "chosen": best}
+    if v >= 0:
+        order = np.argsort(search.yaw_scores) if search.yaws else []
+        choice = {"video": v, "name": name, "anchor_frame": c - a, "yaw_deg": yaw, "turn_rate": best,
+                  "yaws_deg": search.yaws, "yaw_scores": search.yaw_scores, "yaw_ious": search.yaw_ious}
+        if len(order) > 1:
+            s0, s1 = search.yaw_scores[order[0]], search.yaw_scores[order[1]]
+            choice.update(runner_up_yaw_deg=search.yaws[order[1]], margin=float((s1 - s0) / max(abs(s1), 1e-12)),
+                          iou=search.yaw_ious[order[0]])
+        search.chosen.append(choice)
+        rec.update(video=name, orientation=choice)
+        if search.yaws:
+            log.info("video '%s': orientation %.0f degrees about the vertical from the first video's (score %.4f, "
+                     "%.0f %% below the next, %.0f degrees; mask IoU %.3f on its frames %d-%d)", name, yaw,
+                     search.yaw_scores[order[0]], 100 * choice["margin"], choice["runner_up_yaw_deg"], choice["iou"],
+                     int(anchor_window[0]) - a, int(anchor_window[-1]) - a)
+    fit.record(rec)
+    log.info("camera hypotheses%s: turn rate %.2f deg/frame chosen (scores %s%s)", f" of '{name}'" if name else "",
+             best, ", ".join(f"{x:.4f}" for x in scores),
+             "; refined " + ", ".join(f"{r:g}: {v_:.4f}" for r, v_ in refined.items()) if refined else "")
     return best

@@ -101,9 +101,10 @@ def color_loss(rendered: torch.Tensor, image: torch.Tensor, valid: torch.Tensor)
     return (err * valid).sum() / valid.sum().clamp_min(1.0) / 3.0
 
 
-def temporal_smoothness(x: torch.Tensor) -> torch.Tensor:
+def temporal_smoothness(x: torch.Tensor, pairs: torch.Tensor | None = None) -> torch.Tensor:
     """Mean squared first difference over frames of a per-frame parameter ``(T, ...)`` (velocity: consecutive
-    frames differing)."""
+    frames differing); ``pairs`` ``(T - 1,)`` bool keeps only the consecutive frames of one video."""
     if x.shape[0] < 2:
         return x.sum() * 0
-    return ((x[1:] - x[:-1]) ** 2).mean()
+    d = (x[1:] - x[:-1]) ** 2
+    return d.mean() if pairs is None else d[pairs].mean()

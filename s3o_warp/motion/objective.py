@@ -47,6 +47,8 @@ class TermContext:
         sym_plane: (normal (3,) tensor, offset) of the lift's symmetry plane, object frame.
         size: the object's size (the coarse mesh's bounding-box diagonal), to make the joint term unitless.
         joints: ((J, 2) int64 bone pairs, (J, 3) float32 rest positions) of the kinematic tree's joints.
+        frame_pairs: (T - 1,) bool, consecutive frames of one video (several videos; None: all of them).
+        motion_pairs: the same for the rows of the bone motion (None: all of them).
     """
 
     edges: torch.Tensor
@@ -54,6 +56,8 @@ class TermContext:
     sym_plane: tuple
     size: float
     joints: tuple[torch.Tensor, torch.Tensor] | None = None
+    frame_pairs: torch.Tensor | None = None
+    motion_pairs: torch.Tensor | None = None
 
 
 def decayed_sigma(start: float, final: float, step: int, steps: int) -> float:
@@ -104,14 +108,15 @@ def motion_terms(model: S3OModel, data: FitData, frames: torch.Tensor, mc: Motio
     if joint_phase:
         terms["lap"] = (mc.w_lap, laplacian_loss(m.verts - ctx.lap_ref, m.faces))
         terms["sym"] = (mc.w_sym, symmetry_loss(m.verts, ctx.sym_plane))
+    fp, mp = ctx.frame_pairs, ctx.motion_pairs
     smooth = (
-        L.temporal_smoothness(m.root_aa)
-        + L.temporal_smoothness(m.root_t)
-        + L.temporal_smoothness(m.bone_aa)
-        + L.temporal_smoothness(m.bone_t)
+        L.temporal_smoothness(m.root_aa, fp)
+        + L.temporal_smoothness(m.root_t, fp)
+        + L.temporal_smoothness(m.bone_aa, mp)
+        + L.temporal_smoothness(m.bone_t, mp)
     )
     terms["smooth"] = (mc.w_smooth, smooth)
-    terms["bone_reg"] = (mc.w_bone_reg, (m.bone_t[frames] ** 2).mean())
+    terms["bone_reg"] = (mc.w_bone_reg, (m.bone_t[m.motion_of[frames]] ** 2).mean())
     return terms, sil, mask
 
 
@@ -121,14 +126,17 @@ def total(terms: dict) -> torch.Tensor:
 
 
 @torch.no_grad()
-def mean_terms(terms_of, num_frames: int, batch_frames: int, device) -> dict[str, float]:
-    """Every weighted term of ``terms_of(frames)`` averaged over windows that cover every frame (no step taken);
-    consecutive windows share a frame, so every frame pair is seen. A stop request (:mod:`s3o_warp.interrupt`)
-    ends it between windows (it changes nothing: the caller can score again)."""
-    n = min(batch_frames, num_frames)
-    starts = list(range(0, num_frames - n + 1, max(n - 1, 1)))
-    if starts[-1] != num_frames - n:
-        starts.append(num_frames - n)
+def mean_terms(terms_of, num_frames: int, batch_frames: int, device, span: tuple[int, int] | None = None
+               ) -> dict[str, float]:
+    """Every weighted term of ``terms_of(frames)`` averaged over windows that cover every frame (of ``span``,
+    ``(start, stop)``: one video's) with no step taken; consecutive windows share a frame, so every frame pair is
+    seen. A stop request (:mod:`s3o_warp.interrupt`) ends it between windows (it changes nothing: the caller can
+    score again)."""
+    a, b = span or (0, num_frames)
+    n = min(batch_frames, b - a)
+    starts = list(range(a, b - n + 1, max(n - 1, 1)))
+    if starts[-1] != b - n:
+        starts.append(b - n)
     acc: dict[str, list[float]] = {}
     for s in starts:
         interrupt.check("the scoring of a camera hypothesis")
@@ -139,18 +147,21 @@ def mean_terms(terms_of, num_frames: int, batch_frames: int, device) -> dict[str
 
 
 @torch.no_grad()
-def flow_by_gap(model: S3OModel, data: FitData, batch_frames: int) -> dict[int, float]:
+def flow_by_gap(model: S3OModel, data: FitData, batch_frames: int, span: tuple[int, int] | None = None
+                ) -> dict[int, float]:
     """The flow term (eq. 11, unweighted) over every pair (t, t + g) of every gap g the data holds: consecutive
     pairs and :attr:`FitData.long_flow`'s. Frame t is rendered, both frames posed, and the projected displacement
     of the surface seen at each pixel of frame t is compared with the observed flow there. Over a gap of g frames
     a wrong turn rate moves the body by g times its error, so the long gaps tell rates apart that consecutive
-    pairs cannot (``docs/method.md``, camera hypotheses). A stop request ends it between batches."""
-    m, d, S, T = model, data, data.crop_size, data.num_frames
+    pairs cannot (``docs/method.md``, camera hypotheses). ``span`` ``(start, stop)``: the pairs of those frames only
+    (one video's). A stop request ends it between batches."""
+    m, d, S = model, data, data.crop_size
+    a, T = span or (0, data.num_frames)
     W = m.skinning()
     dev = m.verts.device
     stores = {1: (d.flow_fwd, d.conf_fwd), **(d.long_flow or {})}
     num, den = dict.fromkeys(stores, 0.0), dict.fromkeys(stores, 0.0)
-    for s in range(0, T - 1, batch_frames):  # each frame t rendered once, for all its gaps
+    for s in range(a, T - 1, batch_frames):  # each frame t rendered once, for all its gaps
         interrupt.check("the flow score of a camera hypothesis")
         t = torch.arange(s, min(s + batch_frames, T - 1), device=dev)
         vt, Kt = m(t, weights=W), m.intrinsics_crop(t)

@@ -33,11 +33,14 @@ def _h(rt: np.ndarray) -> np.ndarray:
 
 
 @torch.no_grad()
-def rig_from_model(fitter):
-    """The fitted model as an ``export.rig.Rig`` (object frame = the coarse phase's canonical frame)."""
+def rig_from_model(fitter, video=None):
+    """The fitted model as an ``export.rig.Rig`` (object frame = the coarse phase's canonical frame); ``video`` (a
+    :class:`~s3o_warp.data.store.Video`): that video's frames, camera and motion on the shared mesh and skeleton."""
     m, d = fitter.model, fitter.data
-    T, B = m.num_frames, m.num_bones
-    frames = torch.arange(T, device=m.verts.device)
+    B = m.num_bones
+    span = (0, m.num_frames) if video is None else (video.start, video.stop)
+    src = d if video is None else video
+    frames = torch.arange(*span, device=m.verts.device)
     W = m.skinning()
     V = quat_to_matrix(m.bone_quat)  # rows = axes
     bind = np.tile(np.eye(4), (B, 1, 1))
@@ -64,9 +67,9 @@ def rig_from_model(fitter):
         bone_motion=_h(to_numpy(m.bone_rt(frames))),
         root=_h(to_numpy(m.root_rt(frames))),
         K=to_numpy(m.intrinsics_frame(frames)),
-        image_size=tuple(int(x) for x in d.frame_size),
-        fps=float(d.fps),
-        frame_names=list(d.frame_names),
+        image_size=tuple(int(x) for x in src.frame_size),
+        fps=float(src.fps),
+        frame_names=list(src.frame_names),
         joints=joints,
         joint_pairs=pairs,
         centres=to_numpy(m.bone_centers),
@@ -77,6 +80,8 @@ def rig_from_model(fitter):
 
 def write_run(fitter) -> dict:
     """Write rig files, USD + glb, metrics.json and renders/ for a finished fit; return the metrics."""
+    if fitter.data.num_videos > 1:
+        return write_videos(fitter)
     run = Path(fitter.run_dir)
     rig = rig_from_model(fitter)
     save_rig(run, rig)
@@ -95,3 +100,56 @@ def write_run(fitter) -> dict:
     if fitter.cfg.output.render_video:
         pictures.write_renders(run, rig, fitter.data, fitter.history, fitter.cfg.data)
     return metrics
+
+
+def write_videos(fitter) -> dict:
+    """A fit of several videos: the shared ``canonical.ply`` and ``skeleton.json``, one ``<video>.usdc`` per video
+    (its camera and animation on the shared rig), one ``.glb`` with an animation per video, ``videos/<video>/`` a
+    whole one-video run directory each (rig files, ``metrics.json``, ``renders/``), ``videos.json`` (their names in
+    order) and ``metrics.json`` with every video's figures, their mean and each video's registration."""
+    run = Path(fitter.run_dir)
+    d = fitter.data
+    rigs, per_video = [], {}
+    for v in d.videos:
+        rig = rig_from_model(fitter, v)
+        rigs.append(rig)
+        sub = run / "videos" / v.name
+        save_rig(sub, rig)
+        if v is d.videos[0]:
+            save_rig(run, rig)  # the shared mesh and skeleton (its motion.npz, the first video's, replaced below)
+        export_usd(rig, run / f"{v.name}.usdc")
+        m = evaluate_run(sub, None, masks=v.mask_dir, keypoints=v.keypoints_file, ground_truth=v.ground_truth_dir,
+                         object_id=fitter.cfg.data.object_id)
+        m["sequence"] = str(v.sequence_dir)
+        if v.registration is not None:
+            m["registration"] = v.registration
+        write_json(sub / "metrics.json", m)
+        per_video[v.name] = m
+    (run / "motion.npz").unlink(missing_ok=True)  # each video's motion is in videos/<video>/
+    from s3o_warp.export.gltf import export_gltf_videos
+
+    export_gltf_videos(rigs, [v.name for v in d.videos], run / f"{d.name}.glb")
+    write_json(run / "videos.json", {"videos": [v.name for v in d.videos], "synchronized": fitter.cfg.motion.synchronized})
+    metrics = {"videos": per_video, "mean": mean_metrics(list(per_video.values())),
+               "registration": {v.name: v.registration for v in d.videos if v.registration is not None},
+               "sequence": [str(v.sequence_dir) for v in d.videos],
+               "seconds": round(fitter.history[-1]["seconds"], 2) if fitter.history else None}
+    write_json(run / "metrics.json", metrics)
+    if fitter.cfg.output.render_video:
+        for v, rig in zip(d.videos, rigs):
+            pictures.write_renders(run / "videos" / v.name, rig, v, fitter.history, fitter.cfg.data)
+    return metrics
+
+
+def mean_metrics(items: list[dict]) -> dict:
+    """The mean of every number that all of ``items`` hold at the same place (nested dicts; lists left out)."""
+    out = {}
+    for k, first in items[0].items():
+        vals = [it.get(k) for it in items]
+        if isinstance(first, dict) and all(isinstance(x, dict) for x in vals):
+            sub = mean_metrics(vals)
+            if sub:
+                out[k] = sub
+        elif all(isinstance(x, (int, float)) and not isinstance(x, bool) and x is not None for x in vals):
+            out[k] = float(np.mean(vals))
+    return out

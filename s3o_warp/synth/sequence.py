@@ -39,10 +39,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 from tqdm import tqdm
 
 from .. import interrupt
-from ..data.io import atomic_dir, imwrite
+from ..data.io import atomic_dir, imwrite, read_json
+from ..data.sequence import IMAGE_EXTENSIONS
 from ..errors import InputError
 from ..geometry import project_np
 from .camera import camera_path
@@ -229,4 +231,56 @@ def make_sequence(out_dir: str | os.PathLike, source: str | os.PathLike = "quadr
             source=np.array(mesh.source), clip=np.array(mesh.clip), seed=np.int64(seed))
         (tmp / "ground_truth" / "README.txt").write_text(__doc__ or "")
     log.info("wrote %s: %d frames %dx%d of %s (%d keypoints)", out, num_t, w, h, mesh.source, len(kp_names))
+    return out
+
+
+def mirror_sequence(src: str | os.PathLike, dst: str | os.PathLike, overwrite: bool = False) -> Path:
+    """A copy of the sequence folder ``src`` seen in a mirror: every image and mask flipped left-right, and each
+    keypoint of ``keypoints.json`` (when present) moved to x' = W - 1 - x (OpenCV pixel centres), its name and
+    visibility kept.
+
+    Any folder with ``images/`` and ``masks/`` will do (a synthetic sequence, DAVIS frames...). Each file keeps its
+    name, format and mode (a palette mask its palette); lossless formats (PNG) are flipped bit for bit, JPEG is
+    encoded again at quality 95. ``ground_truth/`` is not copied: the mirrored animal is not the model's (its left
+    and right change places), so the copy is scored by its masks and keypoints only. Written into a temporary folder
+    and renamed into place (:func:`s3o_warp.data.io.atomic_dir`).
+
+    Returns:
+        ``dst``.
+
+    Raises:
+        InputError: ``src`` without ``images/`` or ``masks/``, an image that cannot be read, an existing ``dst``
+        without ``overwrite``.
+    """
+    src, out = Path(src), Path(dst)
+    if out.exists() and not overwrite:
+        raise InputError(f"{out}: already exists; choose another folder or pass overwrite=True")
+    for sub in ("images", "masks"):
+        if not (src / sub).is_dir():
+            raise InputError(f"{src / sub}: not found; pass a sequence folder with images/ and masks/")
+    widths: dict[str, int] = {}
+    with atomic_dir(out) as tmp:
+        for sub in ("images", "masks"):
+            (tmp / sub).mkdir()
+            for p in sorted((src / sub).iterdir()):
+                if not p.is_file() or p.name.startswith(".") or p.suffix.lower() not in IMAGE_EXTENSIONS:
+                    continue
+                try:
+                    with Image.open(p) as im:
+                        im.load()
+                        flipped = im.transpose(Image.Transpose.FLIP_LEFT_RIGHT)
+                        fmt, info = im.format, {k: v for k, v in im.info.items() if k in ("transparency", "dpi")}
+                except OSError as exc:
+                    raise InputError(f"{p}: cannot read this image ({exc.__class__.__name__}); "
+                                     "replace or remove it") from None
+                flipped.save(tmp / sub / p.name, format=fmt, **info, **({"quality": 95} if fmt == "JPEG" else {}))
+                if sub == "images":
+                    widths[p.stem] = flipped.width
+        if (src / "keypoints.json").is_file():
+            kp = read_json(src / "keypoints.json", "keypoints file", "fix or remove it")
+            first = next(iter(widths.values()), 0)
+            kp["frames"] = {name: [[round(widths.get(name, first) - 1 - x, 6), *rest] for x, *rest in rows]
+                            for name, rows in kp["frames"].items()}
+            (tmp / "keypoints.json").write_text(json.dumps(kp))
+    log.info("wrote %s: %s mirrored (%d frames)", out, src, len(widths))
     return out

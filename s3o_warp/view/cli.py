@@ -1,11 +1,12 @@
 """The ``s3o-view`` console script (same as ``python scripts/view.py``): a local web page showing one fit.
 
-    s3o-view RUN_DIR [--port N] [--host ADDR] [--sequence PATH] [--surface NAME] [--poll S]
+    s3o-view RUN_DIR [--port N] [--host ADDR] [--sequence PATH] [--surface NAME] [--poll S] [--video NAME]
 
 The page (viser, ``pip install 's3o-warp[view]'``) shows the fitted mesh playing the clip's motion with its skeleton,
 the fitted camera of every frame with that frame's picture, and the run's figures and settings
-(:mod:`s3o_warp.view.server`). A run still fitting shows its newest checkpoint and follows the next ones. Without
-viser, or on bad input (a folder that is not a run, a run with neither ``motion.npz`` nor a checkpoint), one line on
+(:mod:`s3o_warp.view.server`). A run still fitting shows its newest checkpoint and follows the next ones. A fit of
+several videos shows one at a time, chosen on the page (``--video``: the first shown). Without viser, or on bad input
+(a folder that is not a run, a run with neither ``motion.npz`` nor a checkpoint, a video the run lacks), one line on
 stderr and exit code 2.
 """
 
@@ -30,10 +31,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1: this machine only; "
                    "0.0.0.0 for every interface)")
     p.add_argument("--sequence", default=None, metavar="PATH", help="where the input frames are, for the cameras' "
-                   "pictures (default: the sequence metrics.json names, else RUN_DIR/sequence)")
+                   "pictures (default: the sequence metrics.json names, else RUN_DIR/sequence; of a fit of several "
+                   "videos, those of the video shown first)")
     p.add_argument("--surface", default=SURFACES[0], choices=SURFACES, help="how the mesh is drawn first")
     p.add_argument("--poll", type=float, default=2.0, metavar="S",
                    help="seconds between looks for a newer checkpoint or motion.npz (0: never)")
+    p.add_argument("--video", default=None, metavar="NAME", help="of a fit of several videos (videos.json), the one "
+                   "shown first (default: the first; the page switches between them)")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     return p
 
@@ -53,11 +57,13 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         server = ViewServer(args.run_dir, host=args.host, port=args.port, sequence=args.sequence,
-                            surface=args.surface, poll_s=args.poll)
+                            surface=args.surface, poll_s=args.poll, video=args.video)
     except InputError as e:
         print(f"s3o-view: error: {e}", file=sys.stderr)
         return 2
-    print(f"s3o-view: {server.url} shows {args.run_dir} ({server.view.label}); Ctrl-C to stop", flush=True)
+    v = server.view
+    which = f", video {v.videos[v.video]} of {len(v.videos)}" if len(v.videos) > 1 else ""
+    print(f"s3o-view: {server.url} shows {args.run_dir}{which} ({v.label}); Ctrl-C to stop", flush=True)
     try:
         threading.Event().wait()
     except KeyboardInterrupt:

@@ -6,6 +6,12 @@ own posed vertices of every frame in its camera, and ``joints_cam``, ``root``, `
 ``motion.npz`` yet (or an older one than its checkpoints): its newest checkpoint is posed by the package's own code
 (the model it saved, :func:`s3o_warp.run.outputs.rig_from_model`, :meth:`s3o_warp.export.rig.Rig.posed_camera`).
 
+A fit of several videos (``videos.json``: their names in order) is shown one video at a time: a finished one from
+``videos/<video>/``, a one-video run directory each (its ``motion.npz``, ``skeleton.json``, ``metrics.json``); a
+running one from its checkpoint, whose frames are the videos' one after another (the model's ``video_of``), each
+video's range posed on its own (names from ``videos.json``, else the checkpoint's ``a+b`` sequence name, else
+"video 0", "video 1", ...).
+
 World frame: the exported files' (Y up, :mod:`s3o_warp.export.rig`). A point of frame t's OpenCV camera frame goes
 to the world by ``world_from_object @ inv(root[t])``, which is also that frame's camera-to-world transform in OpenCV
 axes (+x right, +y down, +z forward), viser's convention for cameras.
@@ -16,7 +22,7 @@ from __future__ import annotations
 import json
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +38,9 @@ SURFACES = ("colours", "plain", "see-through", "hidden")
 """How the page can draw the mesh (its "surface" choice; ``s3o-view --surface``)."""
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".webp", ".tif", ".tiff")
+
+VIDEOS_FILE = "videos.json"
+"""What a fit of several videos writes beside its ``videos/`` folder: ``{"videos": [name, ...]}`` in order."""
 
 _warned: set = set()
 
@@ -63,9 +72,11 @@ class FitView:
         image_size: (H, W) of the input frames.
         fps: the video's frame rate.
         frame_names: T frame names.
-        metrics: ``metrics.json`` (None while the fit runs).
+        metrics: ``metrics.json`` (None while the fit runs); of a fit of several videos, the shown video's.
         config_text: ``config.toml`` as written (None if absent).
         sequence: where the input frames are (None when not found: the cameras are drawn without images).
+        videos: the names of the fit's videos in order ([] for a fit of one video).
+        video: which of them this is (0 for a fit of one video).
     """
 
     run: Path
@@ -85,6 +96,8 @@ class FitView:
     metrics: dict | None = None
     config_text: str | None = None
     sequence: Path | None = None
+    videos: list[str] = field(default_factory=list)
+    video: int = 0
 
     @property
     def num_frames(self) -> int:
@@ -137,17 +150,58 @@ def _mtime(p: Path) -> int | None:
 
 
 def signature(run: Path) -> tuple:
-    """What changes when the fit writes something the page shows: ``motion.npz``'s and the newest checkpoint's
-    names and times (the viewer polls this)."""
+    """What changes when the fit writes something the page shows: ``motion.npz``'s (each video's) and the newest
+    checkpoint's names and times (the viewer polls this)."""
     cks = checkpoints(run)
     newest = cks[-1] if cks else None
-    return (_mtime(run / "motion.npz"), newest.name if newest else None, _mtime(newest) if newest else None,
-            _mtime(run / "metrics.json"))
+    try:
+        homes = [run / "videos" / n for n in video_names(run)] or [run]
+    except InputError:  # videos.json half-way through being written: its time is in the signature
+        homes = [run]
+    return (_mtime(run / VIDEOS_FILE), newest.name if newest else None, _mtime(newest) if newest else None,
+            _mtime(run / "metrics.json"), tuple((_mtime(h / "motion.npz"), _mtime(h / "metrics.json")) for h in homes))
 
 
-def pick_source(run: Path) -> Path:
-    """``motion.npz``, or the newest checkpoint when there is no ``motion.npz`` or it is older (a fit running into
-    the folder again).
+def video_names(run: Path) -> list[str]:
+    """The videos of a finished fit of several, in order (``videos.json``); [] for a fit of one video.
+
+    Raises:
+        InputError: ``videos.json`` is malformed.
+    """
+    p = Path(run) / VIDEOS_FILE
+    if not p.is_file():
+        return []
+    try:
+        names = json.loads(p.read_text())["videos"]
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise InputError(f"{p}: cannot be read ({type(e).__name__}: {e}); re-run the fit to write it again") from None
+    named = isinstance(names, list) and names and all(isinstance(n, str) and n and Path(n).name == n for n in names)
+    if not named or len(set(names)) != len(names):
+        raise InputError(f"{p}: 'videos' is not a list of distinct folder names; re-run the fit to write it again")
+    return names
+
+
+def video_index(run: Path, names: list[str], video) -> int:
+    """Which of the run's videos ``names`` to show: ``video`` a name, an index (past the last: the last) or None
+    (the first).
+
+    Raises:
+        InputError: a name the run lacks, or any name for a fit of one video (``names`` empty).
+    """
+    if video is None or (isinstance(video, int) and not names):
+        return 0
+    if isinstance(video, int):
+        return min(max(video, 0), len(names) - 1)
+    if not names:
+        raise InputError(f"--video {video}: {run} is a fit of one video; leave --video out")
+    if video not in names:
+        raise InputError(f"--video {video}: {run} has no such video; its videos: {', '.join(names)}")
+    return names.index(video)
+
+
+def pick_source(run: Path, home: Path | None = None) -> Path:
+    """``motion.npz`` (of ``home``: the run, or one video's folder of a fit of several), or the newest checkpoint
+    when there is no ``motion.npz`` or it is older (a fit running into the folder again).
 
     Raises:
         InputError: the folder is missing, is not a run directory, or holds neither.
@@ -155,56 +209,66 @@ def pick_source(run: Path) -> Path:
     run = Path(run)
     if not run.is_dir():
         raise InputError(f"{run}: no such folder; pass a run directory that s3o-fit wrote (its --out)")
-    npz = run / "motion.npz"
+    npz = Path(home or run) / "motion.npz"
     cks = checkpoints(run)
     if not npz.is_file() and not cks:
         if not (run / "config.toml").is_file():
             raise InputError(f"{run} is not a run directory (no motion.npz, config.toml or checkpoints/); pass the "
                              "folder s3o-fit wrote (its --out)")
-        raise InputError(f"{run / 'motion.npz'}: missing and the fit has saved no checkpoint yet; wait for its first "
-                         "checkpoint, or run s3o-fit into this folder")
+        raise InputError(f"{npz}: missing and the fit has saved no checkpoint yet; wait for its first checkpoint, or "
+                         "run s3o-fit into this folder")
     if cks and (not npz.is_file() or (_mtime(cks[-1]) or 0) > (_mtime(npz) or 0)):
         return cks[-1]
     return npz
 
 
-def load_view(run, sequence=None) -> FitView:
+def load_view(run, sequence=None, video=None) -> FitView:
     """The state of the run directory ``run`` that the page shows (see :func:`pick_source`).
 
     Args:
         run: the run directory.
-        sequence: where the input frames are, for the cameras' pictures; default: the sequence ``metrics.json``
-            names, else ``run/sequence``.
+        sequence: where the input frames are, for the cameras' pictures (of a fit of several videos, the shown
+            video's); default: the sequence ``metrics.json`` names, else ``run/sequence``.
+        video: of a fit of several videos, which one (a name or an index, see :func:`video_index`); default the
+            first.
 
     Raises:
         InputError: one line naming the file and the fix (not a run, no ``motion.npz`` nor checkpoint, a malformed
-            file).
+            file, a video the run lacks).
     """
     run = Path(run)
-    source = pick_source(run)
-    metrics = _read_metrics(run)
-    config_text = (run / "config.toml").read_text() if (run / "config.toml").is_file() else None
-    seq = find_sequence(run, metrics, sequence)
+    _check_given(sequence)
+    names = video_names(run)
+    index = video_index(run, names, video) if names else 0  # a running fit's videos are in its checkpoint
+    home = run / "videos" / names[index] if names else run
+    source = pick_source(run, home)
+    view = None
     if source.name != "motion.npz":
         try:
-            arrays, skel, label, source = _read_checkpoint(run, seq)
-            metrics = None  # a metrics.json there belongs to an earlier fit
+            view = _checkpoint_view(run, names, video, sequence)
         except InputError as e:
-            if not (run / "motion.npz").is_file():
+            if not (home / "motion.npz").is_file():
                 raise
-            log.warning("%s; showing motion.npz instead", e)
-            source = run / "motion.npz"
-    if source.name == "motion.npz":
-        arrays, skel = _read_motion(run)
-        label = "finished fit"
-    try:
-        view = _view_from_arrays(run, source, label, arrays, skel)
-    except (ValueError, KeyError, IndexError, TypeError) as e:  # arrays or a skeleton of the wrong shape
-        raise InputError(f"{source}: malformed ({type(e).__name__}: {e}); re-run the fit to write it again") from None
-    view.metrics, view.config_text, view.sequence = metrics, config_text, seq
-    log.debug("%s: %s, %d frames, %d vertices, %d bones", run, label, view.num_frames, view.verts.shape[1],
+            log.warning("%s; showing %s instead", e, home / "motion.npz")
+    if view is None:
+        video_index(run, names, video)  # a name given for a fit of one video: said here
+        arrays, skel = _read_motion(home)
+        view = _view(run, home / "motion.npz", "finished fit", arrays, skel)
+        view.metrics = _read_metrics(home)
+        view.sequence = find_sequence(home, view.metrics, sequence)
+        view.videos, view.video = names, index
+    view.config_text = (run / "config.toml").read_text() if (run / "config.toml").is_file() else None
+    log.debug("%s: %s, %d frames, %d vertices, %d bones", run, view.label, view.num_frames, view.verts.shape[1],
               view.centres.shape[1])
     return view
+
+
+def _view(run: Path, source: Path, label: str, arrays: dict, skel: dict) -> FitView:
+    """:func:`_view_from_arrays`, arrays or a skeleton of the wrong shape said in one line."""
+    try:
+        return _view_from_arrays(run, source, label, arrays, skel)
+    except (ValueError, KeyError, IndexError, TypeError) as e:
+        raise InputError(f"{source}: malformed ({type(e).__name__}: {e}); re-run the fit to write it again") from None
 
 
 def _read_metrics(run: Path) -> dict | None:
@@ -278,9 +342,9 @@ def _view_from_arrays(run: Path, source: Path, label: str, a: dict, skel: dict) 
 
 
 # ------------------------------------------------------------------------------------------ a running fit
-def _read_checkpoint(run: Path, seq: Path | None) -> tuple[dict, dict, str, Path]:
-    """``motion.npz``-like arrays, a ``skeleton.json``-like dict, a label and the path of the run's newest readable
-    checkpoint, posed by the package's own model and rig code."""
+def _checkpoint_view(run: Path, names: list[str], video, sequence) -> FitView:
+    """The :class:`FitView` of the run's newest readable checkpoint (of a fit of several videos, one video's frames),
+    posed by the package's own model and rig code."""
     from s3o_warp.run.checkpoint import CHECKPOINT_VERSION, load_newest
 
     found = load_newest(run, map_location="cpu")  # a damaged newest one is passed over, with a warning
@@ -291,7 +355,19 @@ def _read_checkpoint(run: Path, seq: Path | None) -> tuple[dict, dict, str, Path
         raise InputError(f"{path}: written by another version of s3o-warp (checkpoint version {st.get('version')}); "
                          "view a run of this version")
     try:
-        rig = _rig_of_checkpoint(run, st, seq)
+        spans = video_spans(st["model"])
+    except (KeyError, IndexError, ValueError, TypeError) as e:
+        raise InputError(f"{path}: cannot be posed ({type(e).__name__}: {e}); wait for the fit's next checkpoint"
+                         ) from None
+    if len(spans) > 1:
+        names = names if len(names) == len(spans) else _checkpoint_names(st, len(spans))
+    else:
+        names = []
+    index = video_index(run, names, video)
+    home = run / "videos" / names[index] if names else run
+    seq = find_sequence(home, _read_metrics(home), sequence)  # a metrics.json there names the frames still
+    try:
+        rig = _rig_of_checkpoint(run, st, seq, spans[index] if names else None)
     except (KeyError, IndexError, RuntimeError, ValueError, TypeError) as e:  # not a state this version wrote
         raise InputError(f"{path}: cannot be posed ({type(e).__name__}: {e}); wait for the fit's next checkpoint"
                          ) from None
@@ -304,11 +380,40 @@ def _read_checkpoint(run: Path, seq: Path | None) -> tuple[dict, dict, str, Path
     sk = {"world_from_object": rig.world_from_object.tolist(),
           "bones": [{"centre": c.tolist(), "bind": m.tolist()} for c, m in zip(rig.centres, rig.bind)],
           "joints": [] if rig.joints is None else [{"bones": [int(a), int(b)]} for a, b in rig.joint_pairs]}
-    return arrays, sk, f"checkpoint {path.name} (no motion.npz yet)", path
+    view = _view(run, path, f"checkpoint {path.name} (no motion.npz yet)", arrays, sk)
+    view.sequence, view.videos, view.video = seq, names, index  # no metrics: a metrics.json belongs to an earlier fit
+    return view
 
 
-def _rig_of_checkpoint(run: Path, st: dict, seq: Path | None):
-    """The :class:`s3o_warp.export.rig.Rig` of a checkpoint's state, made as a finished fit makes it."""
+def video_spans(model_state: dict) -> list[tuple[int, int]]:
+    """Each video's frames ``(start, stop)`` in a checkpoint's model state (its ``video_of``; one video without it).
+
+    Raises:
+        ValueError: a video's frames are not one range.
+    """
+    T = int(model_state["root_t"].shape[0])
+    vo = model_state.get("video_of")
+    vo = np.zeros(T, np.int64) if vo is None else np.asarray(vo, np.int64).reshape(-1)
+    spans = []
+    for v in range(int(vo.max()) + 1 if len(vo) else 1):
+        idx = np.flatnonzero(vo == v)
+        if not len(idx) or idx[-1] - idx[0] + 1 != len(idx):
+            raise ValueError(f"video {v}'s frames are not one range of frames")
+        spans.append((int(idx[0]), int(idx[-1]) + 1))
+    return spans
+
+
+def _checkpoint_names(st: dict, n: int) -> list[str]:
+    """The names of a running fit's ``n`` videos: its ``a+b`` sequence name split, else "video 0", "video 1", ..."""
+    parts = str(st.get("sequence", "")).split("+")
+    if len(parts) == n and all(parts) and len(set(parts)) == n:
+        return parts
+    return [f"video {i}" for i in range(n)]
+
+
+def _rig_of_checkpoint(run: Path, st: dict, seq: Path | None, span: tuple[int, int] | None = None):
+    """The :class:`s3o_warp.export.rig.Rig` of a checkpoint's state, made as a finished fit makes it (``span``: one
+    video's frames ``(start, stop)`` of a fit of several)."""
     from types import SimpleNamespace
 
     import torch
@@ -320,40 +425,41 @@ def _rig_of_checkpoint(run: Path, st: dict, seq: Path | None):
     cfg = st["config"]
     sd = st["model"]
     T, B, N = sd["root_t"].shape[0], sd["bone_centers"].shape[0], sd["verts"].shape[0]
-    names, size = frame_list(seq, T)
+    start, stop = span or (0, T)
+    names, size = frame_list(seq, stop - start)
     z = torch.zeros
     init = ModelInit(verts=sd["verts"], faces=sd["faces"], colors=z(N, 3) + 0.5, centers=z(B, 3),
                      rotations=torch.eye(3).expand(B, 3, 3), log_scales=z(B, 3), root_R=torch.eye(3).expand(T, 3, 3),
-                     root_t=z(T, 3), focal=1.0, crop_scale=torch.ones(T), crop_size=int(cfg["data"]["crop_size"]),
-                     crop_to_frame=torch.eye(3).expand(T, 3, 3),
-                     principal_point=cfg["motion"]["principal_point"], frame_size=size or (1, 1))
+                     root_t=z(T, 3), focal=torch.ones(sd["log_focal"].shape), crop_scale=torch.ones(T),
+                     crop_size=int(cfg["data"]["crop_size"]), crop_to_frame=torch.eye(3).expand(T, 3, 3),
+                     principal_point=cfg["motion"]["principal_point"], frame_size=size or (1, 1),
+                     video_of=sd.get("video_of"), motion_of=sd.get("motion_of"))
     model = S3OModel(init)  # the checkpoint's shapes; its values come next
     model.load_state_dict(sd)
     if size is None:  # no frames found: twice the mean principal point (only the frusta's shape depends on it)
         with torch.no_grad():
-            K = model.intrinsics_frame(torch.arange(T)).double()
+            K = model.intrinsics_frame(torch.arange(start, stop)).double()
         size = (int(round(2 * float(K[:, 1, 2].mean()) + 1)), int(round(2 * float(K[:, 0, 2].mean()) + 1)))
         _warn_once("the input frames of %s were not found (pass --sequence): frame size taken as %d x %d from the "
-                   "intrinsics", run, size[1], size[0])
+                   "intrinsics", run if span is None else f"{run} frames {start}-{stop - 1}", size[1], size[0])
     skel = SkeletonState.from_dict(st["skeleton"])
-    # rig_from_model reads a Fitter's model, skeleton, data (frame size, rate, names) and skeleton settings
-    fitter = SimpleNamespace(
-        model=model, skel=skel,
-        data=SimpleNamespace(frame_size=size, fps=float(cfg["data"]["fps"]), frame_names=names),
-        cfg=SimpleNamespace(skeleton=SimpleNamespace(t_r=float(cfg["skeleton"]["t_r"]))),
-    )
-    return rig_from_model(fitter)
+    # rig_from_model reads a Fitter's model, skeleton, data (frame size, rate, names) and skeleton settings, and of
+    # one video of several its frames, frame size, rate and names
+    data = SimpleNamespace(frame_size=size, fps=float(cfg["data"]["fps"]), frame_names=names)
+    fitter = SimpleNamespace(model=model, skel=skel, data=data,
+                             cfg=SimpleNamespace(skeleton=SimpleNamespace(t_r=float(cfg["skeleton"]["t_r"]))))
+    if span is None:
+        return rig_from_model(fitter)
+    return rig_from_model(fitter, SimpleNamespace(start=start, stop=stop, **vars(data)))
 
 
 # ------------------------------------------------------------------------------------------------- frames
 def find_sequence(run: Path, metrics: dict | None, given=None) -> Path | None:
     """Where the input frames are: ``given``, the sequence ``metrics.json`` names, ``run/sequence`` (the built-in
     quadruped's) or the one sequence folder under it (``s3o-fit --box``'s); None when none exists."""
-    if given is not None and not Path(given).exists():
-        raise InputError(f"--sequence {given}: no such file or folder; pass the video or the folder of frames the fit "
-                         "read")
+    _check_given(given)
     cands = [Path(given)] if given is not None else []
-    if metrics and metrics.get("sequence"):
+    if metrics and isinstance(metrics.get("sequence"), str) and metrics["sequence"]:
         cands.append(Path(metrics["sequence"]))
     sq = run / "sequence"
     cands.append(sq)
@@ -363,6 +469,12 @@ def find_sequence(run: Path, metrics: dict | None, given=None) -> Path | None:
         if c.is_file() or (c.is_dir() and _image_files(c)):
             return c
     return None
+
+
+def _check_given(given) -> None:
+    if given is not None and not Path(given).exists():
+        raise InputError(f"--sequence {given}: no such file or folder; pass the video or the folder of frames the fit "
+                         "read")
 
 
 def _image_files(seq: Path) -> list[Path]:

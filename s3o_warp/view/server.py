@@ -14,7 +14,8 @@ Scene (world frame Y up, :mod:`s3o_warp.view.run`):
 
 Panel: the frame slider, play/pause at the video's frame rate, what is drawn, the run's figures (``metrics.json``) and
 its settings (``config.toml``). Every ``poll_s`` seconds the run directory is looked at again: a newer checkpoint (a
-fit still running) or a new ``motion.npz`` replaces the scene.
+fit still running) or a new ``motion.npz`` replaces the scene. A fit of several videos has a "video" selector above
+the rest: the video chosen replaces the scene, frames, cameras and figures with its own, as a fit of one shows them.
 """
 
 from __future__ import annotations
@@ -74,18 +75,22 @@ class ViewServer:
         surface: the first of :data:`SURFACES` shown.
         plain_color: RGB of the plain surface.
         poll_s: seconds between looks at the run directory (0: never).
+        video: of a fit of several videos, the one shown first (a name or an index; default the first); ``sequence``
+            is that video's frames.
 
     Raises:
         InputError: the run cannot be shown (one line naming the file and the fix), before any port is opened.
     """
 
     def __init__(self, run, host: str = "127.0.0.1", port: int = 8080, sequence=None, surface: str = SURFACES[0],
-                 plain_color=PLAIN_COLOR, poll_s: float = 2.0):
+                 plain_color=PLAIN_COLOR, poll_s: float = 2.0, video=None):
         if surface not in SURFACES:
             raise InputError(f"surface {surface!r}: choose one of {', '.join(SURFACES)}")
         self.run, self.sequence = Path(run), sequence
         self.plain_color = tuple(int(c) for c in plain_color)
-        self.view: FitView = load_view(self.run, sequence)
+        self.view: FitView = load_view(self.run, sequence, video)
+        self._sequence_video = self.view.video  # the video that ``sequence`` is the frames of
+        self._replacing = False  # the video selector being set to the video shown (not a choice)
         self._signature = signature(self.run)
         self.lock = threading.RLock()
         self.frame = 0
@@ -137,6 +142,10 @@ class ViewServer:
     # ---------------------------------------------------------------------------------------------- panel
     def _build_gui(self, surface: str) -> None:
         gui, v = self.server.gui, self.view
+        self.video_select = None
+        if len(v.videos) > 1:
+            self.video_select = gui.add_dropdown("video", tuple(v.videos), initial_value=v.videos[v.video],
+                                                 hint="the fit's videos: each one's motion, cameras and figures")
         self.header = gui.add_markdown(self._header_text())
         with gui.add_folder("Playback"):
             self.slider = gui.add_slider("frame", min=0, max=max(v.num_frames - 1, 1), step=1, initial_value=0)
@@ -157,6 +166,8 @@ class ViewServer:
         with gui.add_folder("Settings", expand_by_default=False):
             self.settings_text = gui.add_markdown(self._settings_text())
 
+        if self.video_select is not None:
+            self.video_select.on_update(lambda _: self._video_chosen())
         self.slider.on_update(lambda _: self.show_frame(int(self.slider.value)))
         self.play_button.on_click(lambda _: self.set_playing(not self.playing))
         self.surface.on_update(lambda _: self._surface_changed())
@@ -168,7 +179,8 @@ class ViewServer:
 
     def _header_text(self) -> str:
         v = self.view
-        return (f"**{v.run.resolve().name}**: {v.label}, {v.num_frames} frames at {v.fps:g} fps, "
+        which = f", video **{v.videos[v.video]}** ({v.video + 1} of {len(v.videos)})" if len(v.videos) > 1 else ""
+        return (f"**{v.run.resolve().name}**{which}: {v.label}, {v.num_frames} frames at {v.fps:g} fps, "
                 f"{v.verts.shape[1]} vertices, {v.centres.shape[1]} bones")
 
     def _frame_text(self, t: int) -> str:
@@ -419,26 +431,70 @@ class ViewServer:
         sig = signature(self.run)
         if sig == self._signature:
             return False
-        try:
-            view = load_view(self.run, self.sequence)
-        except InputError as e:  # a file half-way through being replaced, say: the next look tries again
-            log.warning("s3o-view: %s; keeping what is shown", e)
+        view = self._load(self.view.video)
+        if view is None:
             return False
         self._signature = sig
         log.info("s3o-view: %s changed, now showing %s", self.run, view.label)
+        self._replace(view)
+        return True
+
+    def show_video(self, video) -> bool:
+        """Show video ``video`` (a name or an index) of a fit of several from its first frame. Returns whether it
+        did (not when it is the one shown, or cannot be read: a warning says why)."""
+        with self.lock:
+            v = self.view
+            index = video if isinstance(video, int) else v.videos.index(video) if video in v.videos else None
+            if index is None or index == v.video:
+                return False
+            view = self._load(index)
+            if view is None:
+                return False
+            log.info("s3o-view: now showing video %s (%s)", view.videos[view.video] if view.videos else index,
+                     view.label)
+            self.frame = 0
+            self._replace(view)
+        return True
+
+    def _video_chosen(self) -> None:
+        with self.lock:
+            if self._replacing:  # the selector set to what is being shown
+                return
+            if not self.show_video(str(self.video_select.value)) and self.view.videos:
+                self.video_select.value = self.view.videos[self.view.video]  # one that cannot be read: back
+
+    def _load(self, video: int) -> FitView | None:
+        """``load_view`` of video ``video`` (``sequence`` where it is the video the server started on), or None
+        when it cannot be read (a warning says why: a file half-way through being replaced, say)."""
+        seq = self.sequence if video == self._sequence_video else None
+        try:
+            return load_view(self.run, seq, video)
+        except InputError as e:
+            log.warning("s3o-view: %s; keeping what is shown", e)
+            return None
+
+    def _replace(self, view: FitView) -> None:
+        """Show ``view`` in place of the scene, frames, figures and settings shown."""
         with self.lock:
             for h in self._handles:
                 h.remove()
             if self.backdrop is not None:
                 self.backdrop.remove()
             self.view = view
+            if self.video_select is not None and view.videos:
+                self._replacing = True
+                try:
+                    if tuple(view.videos) != tuple(self.video_select.options):  # a running fit's names, then its own
+                        self.video_select.options = tuple(view.videos)
+                    self.video_select.value = view.videos[view.video]
+                finally:
+                    self._replacing = False
             self.slider.max = max(view.num_frames - 1, 1)
             self.header.content = self._header_text()
             self.figures_text.content = self._figures_text()
             self.settings_text.content = self._settings_text()
             self._build_scene()
             self.show_frame(self.frame)
-        return True
 
     def _poll_loop(self, every: float) -> None:
         while not self._stop.wait(every):
