@@ -54,7 +54,7 @@ def _targets():
         (F, "__init__", "model setup"),
         (F, "run", "fit (between phases)"),
         (F, "_run_phase", None),
-        (fit_mod, "select_hypothesis", "hypotheses"),
+        (fit_mod, "select_hypotheses", "hypotheses"),
         (F, "mean_terms", "hypotheses: scoring"),
         (F, "flow_by_gap", "hypotheses: scoring"),
         (F, "hard_iou", "hard IoU"),

@@ -32,7 +32,7 @@ _ALWAYS = {  # read again whenever the run directory is written: applied at ever
 _NEVER = {  # read before the first checkpoint (the data, the coarse model, the seed), or fixed by it
     "data.object_id", "data.crop_size", "data.crop_scale", "data.flow_preset", "data.mask_threshold",
     "data.largest_blob", "coarse.target_vertices", "coarse.fov_degrees", "coarse.canonical_frame",
-    "motion.principal_point", "skeleton.method", "skeleton.virtual_bones", "seed"}
+    "motion.principal_point", "motion.synchronized", "skeleton.method", "skeleton.virtual_bones", "seed"}
 _COARSE = {"coarse.steps", "coarse.lr", "coarse.w_sil", "coarse.w_part", "coarse.w_sym", "coarse.w_lap"}
 _HYPOTHESES = {"motion.hypotheses", "motion.hypothesis_max_rate", "motion.hypothesis_steps", "motion.turn_rate"}
 _WARMUP = {"motion.warmup_steps", "motion.resolve_crossings"}
