@@ -634,14 +634,11 @@ def fit(sequence_dir, out_dir, cfg: Config, device: torch.device, resume: bool =
         resumed = load_newest(out_dir, device) if resume else None  # (path, state); damaged ones passed over
         if resumed is not None:
             apply_changed_settings(resumed[1], cfg, resumed[0])  # one that cannot take effect: refused here
-        several = isinstance(sequence_dir, (list, tuple)) and len(sequence_dir) > 1
-        if several and cfg.motion.principal_point == "shared":
+        dirs = [Path(p) for p in sequence_dir] if isinstance(sequence_dir, (list, tuple)) else [Path(sequence_dir)]
+        if len(dirs) > 1 and cfg.motion.principal_point == "shared":
             raise InputError("motion.principal_point=shared takes one video; fit several videos with "
                              "motion.principal_point=frame (the default)")
-        seqs = [Path(p) for p in sequence_dir] if several else Path(sequence_dir[0] if isinstance(
-            sequence_dir, (list, tuple)) else sequence_dir)
-        data = prepare_data(seqs, cfg, out_dir, device, masks=masks, name=name)  # validates input first
-
+        data = prepare_data(dirs if len(dirs) > 1 else dirs[0], cfg, out_dir, device, masks=masks, name=name)
         try:
             out_dir.mkdir(parents=True, exist_ok=True)
         except OSError as e:

@@ -131,10 +131,6 @@ class S3OModel(nn.Module):
         """Rows of the bone motion: the frames, or one video's frames when synchronized videos share them."""
         return self.bone_aa.shape[0]
 
-    @property
-    def num_videos(self) -> int:
-        return int(self.video_of.max()) + 1 if self.video_of.numel() else 1
-
     # -- skeleton ----------------------------------------------------------------------------------
     def precisions(self) -> torch.Tensor:
         """Q_b = V_b^T diag(exp s_b) V_b, ``(B, 3, 3)``."""

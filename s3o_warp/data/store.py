@@ -140,14 +140,10 @@ class Video:
     mask_dir: Path | None = None
     keypoints_file: Path | None = None
     ground_truth_dir: Path | None = None
-    registration: dict | None = None  # its orientation and turn rate, once the camera hypotheses chose them
 
     @property
     def num_frames(self) -> int:
         return self.stop - self.start
-
-    def frames(self) -> range:
-        return range(self.start, self.stop)
 
 
 @dataclass
@@ -166,7 +162,7 @@ class _Joined:
     """Per-pair arrays of several videos as one list over the fit's pair ids: pair t of gap g joins frames t and
     t + g, which lie in one video or in none (then a zero array: no flow, no confidence)."""
 
-    def __init__(self, parts: list, starts: list[int], lengths: list[int], gap: int, total: int, shape, field: str):
+    def __init__(self, parts: list, starts: list[int], lengths: list[int], gap: int, total: int, shape):
         self.parts, self.starts, self.lengths, self.gap, self.total = parts, starts, lengths, gap, total
         self.item_shape = shape
 
@@ -276,7 +272,7 @@ def _fit_data(srcs: list[_Source], dirs: list[Path], resident: bool, device) -> 
         one = [(_PairField(_GapPairs(s.flow, gap), field) if gap in s.flow.gaps else None) for s in srcs]
         if len(srcs) == 1:
             return one[0]
-        return _Joined(one, starts, lengths, gap, T, shape, field)
+        return _Joined(one, starts, lengths, gap, T, shape)
 
     gaps = sorted({g for s in srcs for g in s.flow.gaps})
     flow_fwd = FrameStore(pairs(1, "flow_fwd", (S, S, 2)), device, resident=resident)

@@ -140,8 +140,6 @@ def select_hypotheses(fit, search: Search | None = None) -> list[dict]:
             search = _new_search(fit, v, chosen)
         select_hypothesis(fit, search)
         chosen, search = search.chosen, None
-    for c in chosen:
-        fit.data.videos[c["video"]].registration = c
     return chosen
 
 

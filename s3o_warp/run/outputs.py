@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from s3o_warp.data.io import write_json
+from s3o_warp.data.io import copy_file, write_json
 from s3o_warp.evaluation.report import evaluate_run
-from s3o_warp.export.gltf import export_gltf
+from s3o_warp.export.gltf import export_gltf, export_gltf_videos
 from s3o_warp.export.rig import Rig, save_rig
 from s3o_warp.export.usd import export_usd
 from s3o_warp.geometry import quat_to_matrix, to_numpy
@@ -109,29 +109,26 @@ def write_videos(fitter) -> dict:
     order) and ``metrics.json`` with every video's figures, their mean and each video's registration."""
     run = Path(fitter.run_dir)
     d = fitter.data
+    registration = registrations(fitter.history)
     rigs, per_video = [], {}
     for v in d.videos:
         rig = rig_from_model(fitter, v)
         rigs.append(rig)
         sub = run / "videos" / v.name
         save_rig(sub, rig)
-        if v is d.videos[0]:
-            save_rig(run, rig)  # the shared mesh and skeleton (its motion.npz, the first video's, replaced below)
         export_usd(rig, run / f"{v.name}.usdc")
         m = evaluate_run(sub, None, masks=v.mask_dir, keypoints=v.keypoints_file, ground_truth=v.ground_truth_dir,
                          object_id=fitter.cfg.data.object_id)
         m["sequence"] = str(v.sequence_dir)
-        if v.registration is not None:
-            m["registration"] = v.registration
+        if v.name in registration:
+            m["registration"] = registration[v.name]
         write_json(sub / "metrics.json", m)
         per_video[v.name] = m
-    (run / "motion.npz").unlink(missing_ok=True)  # each video's motion is in videos/<video>/
-    from s3o_warp.export.gltf import export_gltf_videos
-
+    for f in ("canonical.ply", "skeleton.json"):  # the shared mesh and skeleton; each video's motion is its own
+        copy_file(run / "videos" / d.videos[0].name / f, run / f)
     export_gltf_videos(rigs, [v.name for v in d.videos], run / f"{d.name}.glb")
     write_json(run / "videos.json", {"videos": [v.name for v in d.videos], "synchronized": fitter.cfg.motion.synchronized})
-    metrics = {"videos": per_video, "mean": mean_metrics(list(per_video.values())),
-               "registration": {v.name: v.registration for v in d.videos if v.registration is not None},
+    metrics = {"videos": per_video, "mean": mean_metrics(list(per_video.values())), "registration": registration,
                "sequence": [str(v.sequence_dir) for v in d.videos],
                "seconds": round(fitter.history[-1]["seconds"], 2) if fitter.history else None}
     write_json(run / "metrics.json", metrics)
@@ -139,6 +136,12 @@ def write_videos(fitter) -> dict:
         for v, rig in zip(d.videos, rigs):
             pictures.write_renders(run / "videos" / v.name, rig, v, fitter.history, fitter.cfg.data)
     return metrics
+
+
+def registrations(history: list[dict]) -> dict:
+    """Each video's orientation and turn rate by name, from the camera hypotheses' records of the log (a resumed
+    fit reads its log back, so they survive a stop)."""
+    return {r["video"]: r["orientation"] for r in history if r.get("what") == "hypotheses" and "orientation" in r}
 
 
 def mean_metrics(items: list[dict]) -> dict:

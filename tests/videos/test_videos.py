@@ -146,6 +146,9 @@ def test_a_fit_of_two_videos_writes_each_videos_run_and_one_glb(two_videos, tmp_
     assert reg["right"]["yaw_deg"] == 0.0 or reg["left"]["yaw_deg"] == 0.0  # the reference video is not turned
     other = reg["left"] if reg["right"]["yaw_deg"] == 0.0 and not reg["right"]["yaws_deg"] else reg["right"]
     assert len(other["yaws_deg"]) == 8 and "margin" in other
+    assert {n: metrics["videos"][n]["registration"] for n in reg} == reg  # each video's own metrics say it too
+    log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert {r["video"] for r in log if r.get("what") == "hypotheses"} == {"right", "left"}  # what a resume reads
     assert json.loads((run / "videos.json").read_text())["videos"] == ["right", "left"]
     glb = pygltflib.GLTF2().load(str(run / "right+left.glb"))
     assert sorted(a.name for a in glb.animations) == ["left", "right"]
