@@ -168,7 +168,8 @@ def select_hypothesis(fit, search: Search | None = None) -> float:
         a, b = fit.windows.videos[v]
         c, name = fit.windows.anchors[v], fit.data.videos[v].name
     n = min(mc.batch_frames, b - a)
-    anchor_window = torch.arange(min(max(c - n // 2, a), b - n), min(max(c - n // 2, a), b - n) + n, device=fit.device)
+    first = min(max(c - n // 2, a), b - n)
+    anchor_window = torch.arange(first, first + n, device=fit.device)
 
     def apply(rate: float, yaw: float = 0.0) -> None:
         m.load_state_dict(search.base)
