@@ -8,9 +8,12 @@ INPUTS is one of:
 
 * a folder of sequence folders (each with ``images/`` and ``masks/``), or one sequence folder;
 * a DAVIS root with ``--names cows dog ...``;
-* a CSV or JSON manifest, one row per sequence: ``path`` (required; relative to the manifest's folder), ``masks``
+* a CSV or JSON manifest, one row per object: ``path`` (required; relative to the manifest's folder), ``masks``
   (a mask folder), ``name`` (the sequence inside a DAVIS root), ``run`` (the run folder's name; default the
-  sequence's), and any setting as a dotted key (``motion.steps``) that applies to that row only.
+  sequence's), and any setting as a dotted key (``motion.steps``) that applies to that row only. A row may name
+  several videos of one object, fitted together as ``s3o-fit A B ...`` fits them: in JSON a list of paths (and
+  ``masks`` a list as long, or none), in CSV the paths in one cell separated by ``;`` (and ``masks`` likewise); its
+  run folder's name defaults to the videos' names joined by ``+``.
 
 Every input is checked before Ray starts (paths, manifest rows, settings through
 :func:`s3o_warp.config.make_config`): bad input is one line and exit code 2. A fit that fails (bad frames or masks,
@@ -84,8 +87,9 @@ class Item:
     """One sequence of the batch: what the fit is given and where its run goes (``RUNS/<run>``)."""
 
     run: str
-    path: str
-    masks: str | None = None
+    path: str | tuple[str, ...]
+    """The sequence, or several videos of one object (fitted together)."""
+    masks: str | tuple[str, ...] | None = None
     name: str | None = None
     settings: tuple[str, ...] = ()
     where: str = ""
@@ -114,6 +118,22 @@ def _manifest_rows(path: Path) -> list[tuple[str, dict]]:
             for i, r in enumerate(rows)]
 
 
+def _cell_list(value, where: str, column: str) -> list[str]:
+    """A manifest cell as a list of paths: a JSON list, or a string with ``;`` between paths."""
+    vals = value if isinstance(value, list) else str(value).split(";")
+    vals = [str(v).strip() for v in vals]
+    if not vals or any(not v for v in vals):
+        raise InputError(f"{where}: an empty entry in {column!r} ({value!r}); give one path per video, separated "
+                         "by ';' in a CSV cell")
+    return vals
+
+
+def _relative(p: str, manifest: Path) -> Path:
+    """A manifest's path: absolute as given, or relative to the manifest's folder."""
+    q = Path(p).expanduser()
+    return q if q.is_absolute() else manifest.parent / q
+
+
 def _manifest_items(path: Path) -> list[Item]:
     items = []
     for where, row in _manifest_rows(path):
@@ -123,16 +143,24 @@ def _manifest_items(path: Path) -> list[Item]:
                              "such as motion.steps")
         if "path" not in row:
             raise InputError(f"{where}: no path; give each row the sequence folder in the 'path' column")
-        seq = Path(str(row["path"])).expanduser()
-        seq = seq if seq.is_absolute() else path.parent / seq
+        seqs = [_relative(p, path) for p in _cell_list(row["path"], where, "path")]
         masks = row.get("masks")
         if masks is not None:
-            masks = Path(str(masks)).expanduser()
-            masks = str(masks if masks.is_absolute() else path.parent / masks)
+            masks = [str(_relative(m, path)) for m in _cell_list(masks, where, "masks")]
+            if len(masks) != len(seqs):
+                raise InputError(f"{where}: {len(masks)} mask folder(s) for {len(seqs)} video(s); give one 'masks' "
+                                 "entry per path, or none")
         name = str(row["name"]) if "name" in row else None
+        if name is not None and len(seqs) > 1:
+            raise InputError(f"{where}: 'name' picks one sequence of a DAVIS root, and the row has {len(seqs)} paths; "
+                             "give each video its own sequence folder in 'path'")
         settings = tuple(f"{k}={v}" for k, v in row.items() if k not in MANIFEST_KEYS)
-        run = str(row.get("run") or name or (seq.stem if seq.is_file() else seq.name))
-        items.append(Item(run=run, path=str(seq), masks=masks, name=name, settings=settings, where=where))
+        stems = [s.stem if s.is_file() else s.name for s in seqs]
+        run = str(row.get("run") or name or "+".join(stems))
+        one = len(seqs) == 1
+        item_path = str(seqs[0]) if one else tuple(str(s) for s in seqs)
+        item_masks = None if masks is None else masks[0] if one else tuple(masks)
+        items.append(Item(run=run, path=item_path, masks=item_masks, name=name, settings=settings, where=where))
     if not items:
         raise InputError(f"{path}: the manifest has no rows; add one row per sequence")
     return items
@@ -175,6 +203,10 @@ def collect_items(inputs: str, names: list[str] | None = None) -> list[Item]:
     return [Item(run=p.name, path=str(p), where=str(p)) for p in subs]
 
 
+def _as_tuple(v) -> tuple[str, ...]:
+    return () if v is None else v if isinstance(v, tuple) else (v,)
+
+
 def check_items(items: list[Item], preset: str, config: str | None, settings: list[str],
                 seed: int | None) -> list[Config]:
     """Every item's paths, run name and settings (the batch's, then its own): one Config per item, or InputError
@@ -187,17 +219,22 @@ def check_items(items: list[Item], preset: str, config: str | None, settings: li
             raise InputError(f"{it.where}: run name {it.run!r} is also that of {seen[it.run]}; give each row its own "
                              "'run' name")
         seen[it.run] = it.where
-        if not Path(it.path).exists():
-            raise InputError(f"{it.where}: {it.path} does not exist; fix the path (relative paths start at the "
-                             "manifest's folder)")
-        if it.masks is not None and not Path(it.masks).is_dir():
-            raise InputError(f"{it.where}: mask folder {it.masks} does not exist; fix the 'masks' column")
+        for p in _as_tuple(it.path):
+            if not Path(p).exists():
+                raise InputError(f"{it.where}: {p} does not exist; fix the path (relative paths start at the "
+                                 "manifest's folder)")
+        for m in _as_tuple(it.masks):
+            if not Path(m).is_dir():
+                raise InputError(f"{it.where}: mask folder {m} does not exist; fix the 'masks' column")
         own_seed = [s for s in it.settings if s.startswith("seed=")]
         try:
             cfgs.append(make_config(preset, config, list(settings) + list(it.settings),
                                     None if own_seed else seed))
         except InputError as e:
             raise InputError(f"{it.where}: {e}") from None
+        if cfgs[-1].motion.synchronized and not isinstance(it.path, tuple):
+            raise InputError(f"{it.where}: motion.synchronized=true needs several videos (the same instants from "
+                             "several cameras); list two or more paths in the row, or drop the setting")
     return cfgs
 
 
@@ -235,6 +272,9 @@ def _metric_fields(m: dict) -> dict:
             v = v.get(k) if isinstance(v, dict) else None
         return v
 
+    if "videos" in m:  # several videos: their mean (frames summed), the fit's own clock
+        frames = sum(v.get("frames") or 0 for v in m["videos"].values())
+        return {**_metric_fields({**m["mean"], "seconds": m.get("seconds")}), "frames": frames}
     return {"frames": m.get("frames"), "bones": get("bones", "count"), "mask_iou": get("mask_iou", "mean"),
             "pck_t": get("pck_t", "pck"), "chamfer": get("shape_3d", "chamfer"), "fscore": get("shape_3d", "fscore"),
             "joint_distance": get("skeleton", "distance"), "fit_s": m.get("seconds")}
@@ -272,8 +312,10 @@ def fit_one(item: Item, cfg: Config, runs: str, batch: str, cpus: float) -> dict
         device = resolve_device(None)
         row["device"] = f"{device}, {torch.cuda.get_device_name(device)}" if device.type == "cuda" else \
             f"cpu, {torch.get_num_threads()} torch threads"
-        metrics = fit(item.path, run, cfg, device, resume=latest_checkpoint(run) is not None, masks=item.masks,
-                      name=item.name)
+        several = isinstance(item.path, tuple)
+        metrics = fit(list(item.path) if several else item.path, run, cfg, device,
+                      resume=latest_checkpoint(run) is not None,
+                      masks=list(item.masks) if several and item.masks is not None else item.masks, name=item.name)
         row.update(_metric_fields(metrics), status="finished")
     except FitInterrupted as e:
         row.update(status="interrupted", error=str(e))

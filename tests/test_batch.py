@@ -148,6 +148,11 @@ def _manifest(tmp_path, text: str, name: str = "m.csv") -> str:
     ("missing path", lambda s, t: [_manifest(t, f"path\n{s / 's0'}\n{s / 'gone'}\n")], ["row 3", "gone"]),
     ("same run twice", lambda s, t: [_manifest(t, json.dumps([{"path": str(s / "s0")}, {"path": str(s / "s0")}]),
                                                "m.json")], ["row 2", "'s0'"]),
+    ("masks per video", lambda s, t: [_manifest(t, f"path,masks\n{s / 's0'};{s / 's2'},{s / 's0' / 'masks'}\n")],
+     ["row 2", "1 mask folder(s) for 2 video(s)"]),
+    ("empty path entry", lambda s, t: [_manifest(t, f"path\n{s / 's0'};\n")], ["row 2", "empty entry"]),
+    ("synchronized alone", lambda s, t: [_manifest(t, f"path,motion.synchronized\n{s / 's0'},true\n")],
+     ["row 2", "needs several videos"]),
     ("names without DAVIS", lambda s, t: [str(s), "--names", "cows"], ["--names", "JPEGImages"]),
     ("bad --set", lambda s, t: [str(s), "--set", "motion.nope=1"], ["motion.nope"]),
     ("bad cpus", lambda s, t: [str(s), "--cpus-per-fit", "0"], ["--cpus-per-fit"]),
@@ -195,6 +200,39 @@ def test_inputs_of_every_kind(tmp_path):
     assert (cows.run, cows.name, cows.settings) == ("cows-2", "cows", ("motion.steps=20",))
     cfg_a, cfg_cows = batch.check_items([a, cows], "smoke", None, ["motion.steps=30"], seed=7)
     assert (cfg_a.seed, cfg_a.motion.steps) == (3, 30) and (cfg_cows.seed, cfg_cows.motion.steps) == (7, 20)
+
+
+def test_manifest_row_of_several_videos(tmp_path, monkeypatch):
+    for seq in ("left", "right"):
+        (tmp_path / "clips" / seq / "masks").mkdir(parents=True)
+    csv_m = tmp_path / "m.csv"  # CSV: the videos of one object in one cell, ';' between them
+    csv_m.write_text("path,masks,motion.synchronized\nclips/left; clips/right,clips/left/masks;clips/right/masks,true\n")
+    json_m = tmp_path / "m.json"
+    json_m.write_text(json.dumps([{"path": ["clips/left", "clips/right"], "run": "pair"}, {"path": "clips/left"}]))
+    (row,) = batch.collect_items(str(csv_m))
+    assert row.run == "left+right" and row.settings == ("motion.synchronized=true",)
+    assert [Path(p).resolve() for p in row.path] == [tmp_path / "clips" / "left", tmp_path / "clips" / "right"]
+    assert [Path(p).resolve() for p in row.masks] == [tmp_path / "clips" / v / "masks" for v in ("left", "right")]
+    pair, single = batch.collect_items(str(json_m))
+    assert (pair.run, len(pair.path), pair.masks) == ("pair", 2, None)
+    assert isinstance(single.path, str) and single.run == "left"
+    (cfg,) = batch.check_items([row], "smoke", None, [], seed=0)
+    assert cfg.motion.synchronized
+
+    seen = {}
+
+    def fake_fit(seq, run, cfg, device, resume=False, masks=None, name=None):
+        seen.update(seq=seq, masks=masks)
+        one = {"frames": 4, "mask_iou": {"mean": 0.9}, "bones": {"count": 5}}
+        two = {"frames": 6, "mask_iou": {"mean": 0.7}, "bones": {"count": 5}}
+        return {"videos": {"left": one, "right": two}, "mean": {"mask_iou": {"mean": 0.8}, "bones": {"count": 5.0}},
+                "seconds": 12.5}
+
+    monkeypatch.setattr(batch, "fit", fake_fit)
+    out = batch.fit_one(row, cfg, str(tmp_path / "runs"), "b1", 1)  # the fit is given the list of videos
+    assert seen["seq"] == list(row.path) and seen["masks"] == list(row.masks)
+    assert (out["status"], out["frames"], out["mask_iou"], out["bones"], out["fit_s"]) == ("finished", 10, 0.8, 5.0,
+                                                                                           12.5)
 
 
 def test_resources_per_fit():
