@@ -229,6 +229,7 @@ def main(argv=None) -> int:
                     "chamfer": (metrics.get("shape_3d") or {}).get("chamfer"),
                     "fscore": (metrics.get("shape_3d") or {}).get("fscore"),
                     **views_figures(metrics),
+                    **keypoint_figures(metrics),
                     "skeleton": {k: v for k, v in (metrics.get("skeleton") or {}).items() if k != "per_frame"},
                     "bones": len(json.loads((run / "skeleton.json").read_text())["bones"]),
                     "resamplings": resamplings(run),
@@ -238,7 +239,8 @@ def main(argv=None) -> int:
                 }
                 if case in BOXED:  # scored against the true masks (and their areas for PCK-T)
                     true = evaluate_run(run, prepare_case(BOXED[case], work), progress=False)
-                    entry.update(iou_own_masks=entry["iou"], iou=true["mask_iou"]["mean"], pck_t=true["pck_t"]["pck"])
+                    entry.update(iou_own_masks=entry["iou"], iou=true["mask_iou"]["mean"], pck_t=true["pck_t"]["pck"],
+                                 **keypoint_figures(true))
                 print(json.dumps(entry), flush=True)
                 record(dest, header, entry)
         if pictures:  # the run's own copy, and the repository's figure for this sequence
@@ -261,6 +263,18 @@ def views_figures(metrics: dict) -> dict:
             "roughness": {k: s["roughness"][k] for k in ("pred", "truth")},
             **({"width_ratio": {k: v["width_ratio"][k] for k in ("pred", "truth")}} if "width_ratio" in v else {}),
             **({"turn_error": {k: v["turn_error"].get(k) for k in TURN_FIGURES}} if "turn_error" in v else {})}
+
+
+def keypoint_figures(metrics: dict) -> dict:
+    """PCK-T by role (``pck_t.groups``: the limbs' ends, the rest, the side facing the camera and the far side, the
+    worst keypoint) and how often a fitted limb follows another true limb (``limb_identity.mean_swapped``)."""
+    g = (metrics.get("pck_t") or {}).get("groups") or {}
+    out = {f"pck_t_{k}": (g.get(k) or {}).get("pck") for k in ("ends", "rest", "near", "far")} if g else {}
+    if g.get("worst"):
+        out["pck_t_worst"] = g["worst"]
+    if "limb_identity" in metrics:
+        out["swapped"] = metrics["limb_identity"].get("mean_swapped")
+    return out
 
 
 TURN_FIGURES = ("mean_deg", "max_deg", "end_deg", "end_vertical_deg", "drift_vertical_deg")

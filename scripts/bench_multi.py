@@ -67,10 +67,15 @@ FIGURES = {
     "normal_consistency": ("surface", "normal_consistency"),
     "roughness": ("surface", "roughness", "pred"),
     "roughness_truth": ("surface", "roughness", "truth"),
+    "pck_t_ends": ("pck_t", "groups", "ends", "pck"),
+    "pck_t_rest": ("pck_t", "groups", "rest", "pck"),
+    "pck_t_near": ("pck_t", "groups", "near", "pck"),
+    "pck_t_far": ("pck_t", "groups", "far", "pck"),
     "limbs_distinct": ("skeleton", "limbs_distinct", "covered"),
     "limbs_total": ("skeleton", "limbs_distinct", "total"),
 }
-"""The figures a row keeps of a video's metrics, by where they stand in it: mask IoU, PCK-T, F-score with the
+"""The figures a row keeps of a video's metrics, by where they stand in it: mask IoU, PCK-T (and by role: the limbs'
+ends, the rest, the side facing the camera, the far side), F-score with the
 sequence's alignment, novel-view IoU with each frame aligned and with the sequence's, normal consistency, roughness
 (the truth's beside) and the limbs found with distinct joints of all. None where the metrics lack it (a mirrored
 video has no ground truth: masks and keypoints only)."""

@@ -133,3 +133,13 @@ def test_a_rows_views_figures_carry_the_turn_error():
     assert row["novel_iou"]["framewise"]["side"] == 0.9
     del metrics["views"]["turn_error"]  # a metrics.json from before it: no figure, no error
     assert "turn_error" not in bench_fit.views_figures(metrics)
+
+
+def test_a_rows_keypoint_figures_split_the_limbs_ends_and_sides():
+    """bench_fit's row takes PCK-T by role from metrics.json's groups, and the limbs' swap fraction."""
+    groups = {"ends": {"pck": 60.0}, "rest": {"pck": 90.0}, "near": {"pck": 85.0}, "far": {"pck": 70.0},
+              "worst": {"keypoint": "foot_bl", "pck": 12.5}}
+    row = bench_fit.keypoint_figures({"pck_t": {"pck": 80.0, "groups": groups}, "limb_identity": {"mean_swapped": 0.1}})
+    assert row == {"pck_t_ends": 60.0, "pck_t_rest": 90.0, "pck_t_near": 85.0, "pck_t_far": 70.0,
+                   "pck_t_worst": {"keypoint": "foot_bl", "pck": 12.5}, "swapped": 0.1}
+    assert bench_fit.keypoint_figures({"pck_t": {"pck": 80.0}}) == {}  # no keypoint roles: no figures

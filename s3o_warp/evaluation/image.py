@@ -138,7 +138,8 @@ def pck_transfer(keypoints: np.ndarray, verts: np.ndarray, faces: np.ndarray, K:
         dict: ``pck`` (percent, NaN when nothing was scored), ``correct``, ``total`` (pairs x
         keypoints scored), ``pairs`` (ordered frame pairs), ``by_gap`` (per band of :data:`GAP_BANDS`:
         ``frames`` "lo-hi" or "lo+", ``correct``, ``total``, ``pck``), ``per_keypoint_correct`` and
-        ``per_keypoint_total`` (P,) int arrays, ``pred`` float64 (A, A, P, 2) transferred positions
+        ``per_keypoint_total`` (P,) int arrays, ``per_frame_keypoint_correct`` and ``per_frame_keypoint_total``
+        (A, P) the same per reference frame i, ``pred`` float64 (A, A, P, 2) transferred positions
         ``pred[i, j]`` of frame i's keypoints in frame j, and ``valid`` bool (A, A, P) (both None when
         A * A * P > ``pair_limit``: long fully annotated videos are scored in O(A P) memory).
     """
@@ -159,8 +160,8 @@ def pck_transfer(keypoints: np.ndarray, verts: np.ndarray, faces: np.ndarray, K:
     pred_all = np.zeros((A, A, P, 2)) if keep_pairs else None
     valid_all = np.zeros((A, A, P), bool) if keep_pairs else None
     correct_n, total = 0, 0
-    kp_correct = np.zeros(P, np.int64)
-    kp_total = np.zeros(P, np.int64)
+    kp_correct = np.zeros((A, P), np.int64)  # per reference frame and keypoint
+    kp_total = np.zeros((A, P), np.int64)
     fidx = np.arange(A) if frame_index is None else np.asarray(frame_index, np.int64)
     band = np.digitize(np.abs(fidx[:, None] - fidx[None, :]), GAP_BANDS) - 1  # (A, A), -1 on the diagonal
     gap_correct = np.zeros(len(GAP_BANDS), np.int64)
@@ -182,8 +183,8 @@ def pck_transfer(keypoints: np.ndarray, verts: np.ndarray, faces: np.ndarray, K:
         correct = (err < thr) & valid
         correct_n += int(correct.sum())
         total += int(valid.sum())
-        kp_correct += correct.sum(axis=(0, 1))
-        kp_total += valid.sum(axis=(0, 1))
+        kp_correct[sl] = correct.sum(axis=1)
+        kp_total[sl] = valid.sum(axis=1)
         bi = np.broadcast_to(band[sl][..., None], valid.shape)
         gap_correct += np.bincount(bi[correct], minlength=len(GAP_BANDS))
         gap_total += np.bincount(bi[valid], minlength=len(GAP_BANDS))
@@ -197,8 +198,10 @@ def pck_transfer(keypoints: np.ndarray, verts: np.ndarray, faces: np.ndarray, K:
         "by_gap": [{"frames": f"{lo}-{hi - 1}" if hi else f"{lo}+", "correct": int(c), "total": int(t),
                     "pck": 100.0 * c / t if t else None}
                    for lo, hi, c, t in zip(GAP_BANDS, (*GAP_BANDS[1:], None), gap_correct, gap_total)],
-        "per_keypoint_correct": kp_correct,
-        "per_keypoint_total": kp_total,
+        "per_keypoint_correct": kp_correct.sum(0),
+        "per_keypoint_total": kp_total.sum(0),
+        "per_frame_keypoint_correct": kp_correct,
+        "per_frame_keypoint_total": kp_total,
         "pred": pred_all,
         "valid": valid_all,
     }

@@ -85,6 +85,9 @@ class GroundTruth:
     source: Path
     tips: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
     cam_from_world: np.ndarray | None = None
+    keypoints: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    """Per keypoint name, float32 (T, 3): its surface point (``keypoint_vertex``) in camera space; empty when the
+    file has none."""
 
 
 @dataclass(frozen=True)
@@ -313,20 +316,22 @@ def load_ground_truth(gt) -> GroundTruth:
             raise InputError(f"{path}: 'frame_names' has {len(fnames)} entries but 'verts' has {T} frames")
     K = _intrinsics(d["K"], T, path) if "K" in d else None
     size = _image_size(d["image_size"], path) if "image_size" in d else None
-    tips = {}
-    if names and "keypoint_names" in d and "keypoint_vertex" in d:
+    tips, points = {}, {}
+    if "keypoint_names" in d and "keypoint_vertex" in d:
         kv = np.asarray(d["keypoint_vertex"]).reshape(-1)
         for kn, v in zip((str(s) for s in d["keypoint_names"].reshape(-1)), kv):
-            if kn.endswith("_tip") and kn[:-4] in names:
-                if not 0 <= int(v) < verts.shape[1]:
-                    raise InputError(f"{path}: keypoint {kn!r} names vertex {int(v)}, but there are {verts.shape[1]}")
-                tips[kn[:-4]] = verts[:, int(v)]
+            if not 0 <= int(v) < verts.shape[1]:
+                raise InputError(f"{path}: keypoint {kn!r} names vertex {int(v)}, but there are {verts.shape[1]}")
+            points[kn] = verts[:, int(v)]
+            if names and kn.endswith("_tip") and kn[:-4] in names:
+                tips[kn[:-4]] = points[kn]
     c2w = None
     if "cam_from_world" in d:
         c2w = np.asarray(d["cam_from_world"], dtype=np.float64)
         if c2w.shape != (T, 4, 4):
             raise InputError(f"{path}: 'cam_from_world' must have shape ({T}, 4, 4), got {c2w.shape}")
-    return GroundTruth(verts, faces.astype(np.int32), joints, names or [], parents, fnames, K, size, path, tips, c2w)
+    return GroundTruth(verts, faces.astype(np.int32), joints, names or [], parents, fnames, K, size, path, tips, c2w,
+                       points)
 
 
 def load_keypoints(path) -> Keypoints:

@@ -30,6 +30,7 @@ from s3o_warp.evaluation.loaders import (
     load_masks,
     load_predictions,
 )
+from s3o_warp.evaluation.keypoints import facing_sides, pck_groups
 from s3o_warp.evaluation.shape import bbox_diagonal, frame_similarities, shape_metrics
 from s3o_warp.evaluation.views import novel_view_iou, surface_quality, turn_error, width_ratios
 from s3o_warp.evaluation.skeleton import (
@@ -57,6 +58,23 @@ def _pair_frames(pred_names: list[str], gt: GroundTruth, where: Path) -> tuple[n
                          f"{len(pred_names)}; add frame_names to the ground-truth file or score the full sequence")
     idx = np.arange(len(pred_names))
     return idx, idx
+
+
+def _keypoint_depth(gt: GroundTruth | None, names: list[str], pred_names: list[str], ann: list[int]) -> np.ndarray | None:
+    """float (A, P) the true camera-space depth of each keypoint at the annotated frames ``ann`` (indices into the
+    run's ``pred_names``), or None where the ground truth lacks a keypoint or a frame."""
+    if gt is None or not gt.keypoints or any(n not in gt.keypoints for n in names):
+        return None
+    if gt.frame_names is not None:
+        pos = {n: i for i, n in enumerate(gt.frame_names)}
+        if any(pred_names[t] not in pos for t in ann):
+            return None
+        gi = np.array([pos[pred_names[t]] for t in ann])
+    elif gt.verts.shape[0] == len(pred_names):
+        gi = np.asarray(ann)
+    else:
+        return None
+    return np.stack([gt.keypoints[n][gi, 2] for n in names], axis=1).astype(np.float64)
 
 
 def _jsonable(x):
@@ -113,7 +131,9 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
     Returns:
         A JSON-ready dict: ``run``, ``sequence``, ``frames``, then ``mask_iou`` (``mean``,
         ``per_frame`` {stem: IoU}), ``pck_t`` (``pck`` %, ``correct``, ``total``, ``pairs``,
-        ``frames``, ``alpha``, ``threshold_frame``, ``per_keypoint``), ``shape_3d`` (see
+        ``frames``, ``alpha``, ``threshold_frame``, ``per_keypoint``, ``groups``: the limbs' ends against the
+        rest and the side facing the camera against the far side, :func:`~s3o_warp.evaluation.keypoints.pck_groups`,
+        with ``facing_from`` the ground truth's depths or the image), ``shape_3d`` (see
         :func:`shape_metrics`), ``views`` (``sequence`` and ``framewise``: :func:`novel_view_iou` with the
         sequence's alignment and with each frame's own; ``width_ratio``, :func:`width_ratios`; ``turn_error``,
         :func:`turn_error`: each frame's own alignment against the sequence's, in degrees), ``surface``
@@ -136,6 +156,11 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
 
     T = len(pred.frame_names)
     H, W = pred.image_size
+    gt = load_ground_truth(ground_truth) if ground_truth is not None else None
+    if gt is not None and gt.frame_names is None and masks_dir is not None and masks_dir.is_dir():
+        stems = sorted(p.stem for p in masks_dir.iterdir() if p.suffix.lower() == ".png")
+        if len(stems) == gt.verts.shape[0]:
+            gt = dataclasses.replace(gt, frame_names=stems)
     result: dict = {"run": str(pred.source), "sequence": str(seq) if seq else None, "frames": T, "image_size": [H, W]}
     skipped: dict[str, str] = {}
 
@@ -182,6 +207,11 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
                 "per_keypoint": {n: {"pck": (100.0 * c / t if t else None), "correct": int(c), "total": int(t)}
                                  for n, c, t in zip(kps.names, r["per_keypoint_correct"], r["per_keypoint_total"])},
             }
+            depth = _keypoint_depth(gt, kps.names, pred.frame_names, ann)
+            facing = facing_sides(kps.names, kp_arr, depth)
+            result["pck_t"]["groups"] = {
+                **pck_groups(kps.names, r["per_frame_keypoint_correct"], r["per_frame_keypoint_total"], facing),
+                "facing_from": "ground truth" if depth is not None else "image"}
     else:
         skipped["mask_iou"] = f"no masks folder ({masks_dir})"
         if kps is not None:
@@ -200,12 +230,7 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
         skipped["bones"] = f"{pred.source} has no weights"
 
     # ---- 3D shape and skeleton against synthetic ground truth ----
-    if ground_truth is not None:
-        gt = load_ground_truth(ground_truth)
-        if gt.frame_names is None and masks_dir is not None and masks_dir.is_dir():
-            stems = sorted(p.stem for p in masks_dir.iterdir() if p.suffix.lower() == ".png")
-            if len(stems) == gt.verts.shape[0]:
-                gt = dataclasses.replace(gt, frame_names=stems)
+    if gt is not None:
         pi, gi = _pair_frames(pred.frame_names, gt, pred.source)
         shape, sim = shape_metrics(pred.verts_cam[pi], pred.faces, gt.verts[gi], gt.faces, n_points=n_points,
                                    fscore_ratio=fscore_ratio, icp_iters=icp_iters, seed=seed)
@@ -281,6 +306,14 @@ def format_table(metrics: dict) -> str:
         if m.get("by_gap"):
             rows.append(("PCK-T by frame gap (%)", " / ".join(f(g["pck"], ".1f") for g in m["by_gap"]),
                          "pairs " + ", ".join(f"{g['frames']} ({g['total']})" for g in m["by_gap"]) + " frames apart"))
+        g = m.get("groups")
+        if g:
+            rows.append(("PCK-T limbs' ends / rest (%)", f"{f(g['ends']['pck'], '.1f')} / {f(g['rest']['pck'], '.1f')}",
+                         f"{len(g['ends']['keypoints'])} keypoints on the limbs' ends"
+                         + (f"; worst {g['worst']['keypoint']} {g['worst']['pck']:.1f}" if g.get("worst") else "")))
+            rows.append(("PCK-T near / far side (%)", f"{f(g['near']['pck'], '.1f')} / {f(g['far']['pck'], '.1f')}",
+                         f"side facing the camera from the {g['facing_from']}, known in {g['frames_with_side']} "
+                         f"of {m['frames']} frames"))
     if "joints_inside" in metrics:
         m = metrics["joints_inside"]
         rows.append(("joints inside the body", f(m["fraction"], ".3f"),

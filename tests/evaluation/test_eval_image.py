@@ -59,6 +59,7 @@ def test_pck_transfer_matches_naive_loops():
         rg = _fast_pckt(kp, face_index, bary, verts, faces, K, area, alpha=0.3, threshold_frame=mode,
                         frame_index=fidx)
         want_c, want_t = np.zeros(4, int), np.zeros(4, int)
+        frame_c, frame_t = np.zeros((A, P), int), np.zeros((A, P), int)  # per reference frame and keypoint
         for i in range(A):
             for j in range(A):
                 for p in range(P):
@@ -66,8 +67,14 @@ def test_pck_transfer_matches_naive_loops():
                         continue
                     b = int(np.digitize(abs(fidx[i] - fidx[j]), GAP_BANDS)) - 1
                     thr = 0.3 * np.sqrt(area[i if mode == "reference" else j])
+                    ok = np.linalg.norm(pred0[i, j, p] - kp[j, p, :2]) < thr
                     want_t[b] += 1
-                    want_c[b] += np.linalg.norm(pred0[i, j, p] - kp[j, p, :2]) < thr
+                    want_c[b] += ok
+                    frame_t[i, p] += 1
+                    frame_c[i, p] += ok
+        np.testing.assert_array_equal(r["per_frame_keypoint_total"], frame_t)
+        np.testing.assert_array_equal(r["per_frame_keypoint_correct"], frame_c)
+        assert 0 < frame_c.sum() < frame_t.sum()
         assert [g["frames"] for g in rg["by_gap"]] == ["1-3", "4-11", "12-23", "24+"]
         assert [g["total"] for g in rg["by_gap"]] == want_t.tolist() and want_t.all()
         assert [g["correct"] for g in rg["by_gap"]] == want_c.tolist()
@@ -77,6 +84,7 @@ def test_pck_transfer_matches_naive_loops():
                         chunk_elements=1, pair_limit=0)
         assert (rc["correct"], rc["total"]) == (c0, t0) and rc["pred"] is None
         np.testing.assert_array_equal(rc["per_keypoint_correct"], r["per_keypoint_correct"])
+        np.testing.assert_array_equal(rc["per_frame_keypoint_correct"], r["per_frame_keypoint_correct"])
     with pytest.raises(ValueError, match="threshold_frame"):
         _fast_pckt(kp, face_index, bary, verts, faces, K, area, threshold_frame="middle")
 

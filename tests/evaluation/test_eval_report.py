@@ -201,6 +201,14 @@ def test_scores_a_synth_sequence(tmp_path):
     assert good["shape_3d"]["chamfer"] < 1e-6 and good["shape_3d"]["fscore"] == 1.0 and good["skeleton"]["distance"] < 1e-5
     assert bad["mask_iou"]["mean"] < 0.9 and bad["shape_3d"]["fscore"] < 0.9 and bad["skeleton"]["distance"] > 0.01
     assert bad["pck_t"]["pck"] < good["pck_t"]["pck"]
+    g = good["pck_t"]["groups"]  # the quadruped's feet apart from the rest; its sides from the true depths
+    assert g["facing_from"] == "ground truth" and g["frames_with_side"] == 5
+    assert g["ends"]["keypoints"] == ["foot_fl", "foot_fr", "foot_bl", "foot_br"]
+    assert g["ends"]["pck"] == g["rest"]["pck"] == g["near"]["pck"] == g["far"]["pck"] == 100.0
+    assert g["ends"]["total"] + g["rest"]["total"] == good["pck_t"]["total"]
+    sided = sum(v["total"] for n, v in good["pck_t"]["per_keypoint"].items() if n[-1] in "lr" and "_" in n)
+    assert g["near"]["total"] + g["far"]["total"] == sided and g["near"]["total"] > 0 and g["far"]["total"] > 0
+    assert bad["pck_t"]["groups"]["worst"]["pck"] < 100.0
     assert good["views"]["sequence"]["mean"] == good["views"]["framewise"]["mean"] == 1.0
     assert bad["views"]["sequence"]["mean"] < 0.9
 
