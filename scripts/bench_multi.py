@@ -2,7 +2,7 @@
 """Multi-video benchmark: videos of one object fitted together and each alone, in ``benchmarks/multi-<device>.json``.
 
     python scripts/bench_multi.py --device cpu [--cases robot4 horse2 horse-mirror] [--seeds 0 1 2]
-                                  [--preset default] [--set key=value ...] [--out-dir DIR] [--no-alone]
+                                  [--preset default] [--set key=value ...] [--out-dir DIR] [--no-alone] [--rescore]
 
 Cases (:data:`CASES`), rendered from the glTF models of ../shared/data as ``scripts/bench_fit.py``'s are (48 frames
 at 30 fps, 320x240, 15 degrees up; a case whose model is absent skips with a message):
@@ -20,7 +20,8 @@ Each case's videos are rendered once into ``OUT_DIR/sequences/<case>/<video>/`` 
 together into ``OUT_DIR/runs/<case>-<seed>/`` (``RUN/videos/<video>/`` holds each video's own run directory) and,
 unless ``--no-alone``, each alone into ``OUT_DIR/runs/<case>-<video>-alone-<seed>/`` with the same settings and
 ``motion.synchronized=false``. A row per case and seed (:func:`multi_row`) holds, per video of the joint fit, the
-figures of :data:`FIGURES` and the fit's registration of it, their mean over the videos, the wall time, and the same
+figures of :data:`FIGURES` and the fit's registration of it (and, from the ground truth, how far off it is:
+:func:`registration_errors`), their mean over the videos, the wall time, and the same
 figures of each video fitted alone; it is recorded after the joint fit and again after each fit alone, merged into the
 JSON file as bench_fit merges its rows (a rerun at the same commit replaces its row, other commits' rows stay).
 """
@@ -144,6 +145,74 @@ def multi_row(joint: dict, wall: float, alone: dict[str, tuple[dict, float]] | N
     return row
 
 
+def registration_errors(run: Path, videos: dict[str, Path], frames: int = 8) -> dict[str, float]:
+    """Per video with ground truth, how far (degrees) the joint fit turned its canonical body from the first such
+    video's, as the truth sees both: each video's fitted vertices of ``frames`` frames spread over it, put in the
+    truth's camera by its sequence alignment (its ``metrics.json``) and in the truth's world by ``cam_from_world``,
+    give the rotation from the shared ``canonical.ply`` (Procrustes); the angle of one video's mean rotation against
+    the first's. 0 is a registration the truth agrees with; a video registered the wrong way round reads ~180."""
+    import numpy as np
+    import trimesh
+    from scipy.spatial.transform import Rotation
+
+    from s3o_warp.evaluation.loaders import load_ground_truth
+
+    if not (run / "canonical.ply").is_file():
+        return {}
+    X = np.asarray(trimesh.load(run / "canonical.ply", process=False).vertices, np.float64)
+    X = X - X.mean(0)
+    turns = {}
+    for name, seq in videos.items():
+        own = run / "videos" / name
+        if not (seq / "ground_truth").is_dir() or not (own / "metrics.json").is_file():
+            continue
+        gt = load_ground_truth(seq / "ground_truth")
+        al = (json.loads((own / "metrics.json").read_text()).get("shape_3d") or {}).get("alignment")
+        if gt.cam_from_world is None or al is None:
+            continue
+        V = np.load(own / "motion.npz")["verts_cam"].astype(np.float64)
+        if V.shape[1] != len(X) or V.shape[0] != gt.cam_from_world.shape[0]:
+            continue
+        R, t, sc = np.asarray(al["rotation"]), np.asarray(al["translation"]), float(al["scale"])
+        rots = []
+        for f in np.linspace(0, len(V) - 1, frames).round().astype(int):
+            cam = sc * V[f] @ R.T + t
+            w2c = gt.cam_from_world[f]
+            world = (cam - w2c[:3, 3]) @ w2c[:3, :3]  # inverse of the rigid world -> camera
+            rots.append(Rotation.align_vectors(world - world.mean(0), X)[0])
+        turns[name] = Rotation.concatenate(rots).mean()
+    if not turns:
+        return {}
+    ref = turns[next(iter(turns))]
+    return {name: round(float(np.degrees((q * ref.inv()).magnitude())), 1) for name, q in turns.items()}
+
+
+def rescore_row(dest: Path, work: Path, case: str, seed: int, preset: str, overrides: list[str],
+                videos: dict[str, Path]) -> dict | None:
+    """The newest row of ``case`` and ``seed`` (same preset and overrides) in ``dest``, its runs scored again with
+    this commit's metrics (:func:`s3o_warp.evaluation.report.evaluate_run` on each video's run directory and each
+    fit alone); its fits' commit and wall times kept, ``rescored_commit`` added. None when there is no such row."""
+    from s3o_warp.evaluation.report import evaluate_run
+
+    rows = json.loads(dest.read_text())["results"] if dest.is_file() else []
+    rows = [r for r in rows if (r.get("case"), r.get("seed"), r.get("preset"), r.get("overrides")) ==
+            (case, seed, preset, overrides)]
+    if not rows:
+        return None
+    old = rows[-1]
+    run = work / "runs" / f"{case}-{seed}"
+    top = json.loads((run / "metrics.json").read_text())
+    joint = {"videos": {name: evaluate_run(run / "videos" / name, seq, progress=False) for name, seq in videos.items()},
+             "registration": top.get("registration") or {}}
+    alone = {name: (evaluate_run(work / "runs" / f"{case}-{name}-alone-{seed}", seq, progress=False),
+                    old["alone"][name]["wall_seconds"])
+             for name, seq in videos.items() if name in (old.get("alone") or {})}
+    keys = {k: old[k] for k in ("command", "case", "seed", "preset", "overrides", "synchronized", "mirror_of",
+                                "git_commit", "device_name") if k in old}
+    keys.update(rescored_commit=git_commit(), registration_error_deg=registration_errors(run, videos))
+    return multi_row(joint, old["wall_seconds"], alone or None, **keys)
+
+
 def _timed_fit(seq, run: Path, cfg, device) -> tuple[dict, float]:
     t0 = time.perf_counter()
     metrics = fit(seq, run, cfg, device)
@@ -160,6 +229,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out-dir", default=str(REPO / "runs" / "bench"))
     ap.add_argument("--alone", action=argparse.BooleanOptionalAction, default=True,
                     help="also fit each video alone with the same settings (motion.synchronized=false); default on")
+    ap.add_argument("--rescore", action="store_true",
+                    help="score the runs already in OUT_DIR again with this commit's metrics, without fitting; each "
+                         "row keeps its fits' commit and wall times and gains rescored_commit")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")  # the fits' logs to stderr
     device, work = resolve_device(args.device), Path(args.out_dir)
@@ -174,11 +246,20 @@ def main(argv=None) -> int:
         mirrors = {name: spec["mirror"] for name, spec in CASES[case]["videos"].items() if "mirror" in spec}
         sync = "true" if CASES[case]["synchronized"] else "false"
         for seed in args.seeds:
+            if args.rescore:
+                row = rescore_row(dest, work, case, seed, args.preset, args.overrides, videos)
+                if row is None:
+                    print(f"bench_multi: no row of {case} seed {seed} to rescore in {dest}", file=sys.stderr)
+                    continue
+                record(dest, header, row)
+                print(json.dumps(row, default=float), flush=True)
+                continue
             cfg = make_config(args.preset, overrides=[f"motion.synchronized={sync}"] + args.overrides, seed=seed)
             keys = dict(command=header["command"], case=case, seed=seed, preset=args.preset, overrides=args.overrides,
                         synchronized=cfg.motion.synchronized, **({"mirror_of": mirrors} if mirrors else {}),
                         git_commit=header["git_commit"], device_name=header["device_name"])
             joint, wall = _timed_fit(list(videos.values()), work / "runs" / f"{case}-{seed}", cfg, device)
+            keys["registration_error_deg"] = registration_errors(work / "runs" / f"{case}-{seed}", videos)
             row = multi_row(joint, wall, **keys)
             record(dest, header, row)
             if args.alone:

@@ -169,3 +169,56 @@ def test_main_fits_together_then_alone_and_records_the_row(renders, tmp_path, mo
     assert [f[1] for f in fits] == ["robot4-0"]
     (row,) = json.loads((tmp_path / "benchmarks" / "multi-cpu.json").read_text())["results"]  # the rerun replaced it
     assert "alone" not in row
+
+    # --rescore: no fit; the runs scored again, the row's commit and wall time kept
+    import s3o_warp.evaluation.report as report
+
+    fits.clear()
+    scored = []
+    monkeypatch.setattr(report, "evaluate_run", lambda run, seq, progress: scored.append(Path(run).name)
+                        or _metrics(0.95, 90.0, 0.6, 4))
+    (out / "runs" / "robot4-0" / "metrics.json").parent.mkdir(parents=True, exist_ok=True)
+    (out / "runs" / "robot4-0" / "metrics.json").write_text(json.dumps({"registration": {"left": {"yaw_deg": 90.0}}}))
+    monkeypatch.setattr(bench_multi, "git_commit", lambda: "b" * 40)
+    assert bench_multi.main(["--cases", "robot4", "--out-dir", str(out), "--rescore", "--set", "coarse.steps=5"]) == 0
+    assert fits == [] and scored == ["right", "front", "left", "back"]
+    (new,) = json.loads((tmp_path / "benchmarks" / "multi-cpu.json").read_text())["results"]
+    assert (new["git_commit"], new["rescored_commit"], new["wall_seconds"]) == ("a" * 40, "b" * 40, row["wall_seconds"])
+    assert new["mean"]["pck_t"] == 90.0 and new["joint"]["left"]["registration"] == {"yaw_deg": 90.0}
+    assert bench_multi.main(["--cases", "robot4", "--out-dir", str(out), "--rescore", "--seeds", "3"]) == 0  # none
+
+
+def test_registration_error_reads_a_wrong_turn_from_the_truth(tmp_path):
+    """A video whose fit holds the shared body turned by 180 degrees about the vertical reads ~180; one registered as
+    the truth is, 0 (each video's cameras its own, the second moving)."""
+    import trimesh
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(60, 3)) * [1.0, 0.4, 0.2]  # an elongated body: its turn is well defined
+    faces = np.array([[0, 1, 2]])
+    run = tmp_path / "run"
+    run.mkdir()
+    trimesh.Trimesh(X, faces, process=False).export(run / "canonical.ply")
+    T = 4
+    turn = Rotation.from_euler("y", 180, degrees=True).as_matrix()
+    videos = {}
+    for name, az, wrong in (("a", 0.0, False), ("b", 90.0, False), ("c", 200.0, True)):
+        w2c = np.tile(np.eye(4), (T, 1, 1))
+        for t in range(T):
+            w2c[t, :3, :3] = Rotation.from_euler("y", az + 5 * t, degrees=True).as_matrix()
+            w2c[t, :3, 3] = [0.1 * t, 0.0, 6.0]
+        gt_verts = X @ w2c[:, :3, :3].transpose(0, 2, 1) + w2c[:, None, :3, 3]
+        fit_verts = (X @ turn.T if wrong else X) @ w2c[:, :3, :3].transpose(0, 2, 1) + w2c[:, None, :3, 3]
+        seq = videos[name] = tmp_path / "seqs" / name
+        (seq / "ground_truth").mkdir(parents=True)
+        np.savez(seq / "ground_truth" / "ground_truth.npz", verts=gt_verts, faces=faces, cam_from_world=w2c)
+        own = run / "videos" / name
+        own.mkdir(parents=True)
+        np.savez(own / "motion.npz", verts_cam=fit_verts)
+        (own / "metrics.json").write_text(json.dumps({"shape_3d": {"alignment": {
+            "scale": 1.0, "rotation": np.eye(3).tolist(), "translation": [0.0, 0.0, 0.0]}}}))
+    videos["m"] = tmp_path / "seqs" / "m"  # a video without ground truth (a mirrored copy): left out
+    err = bench_multi.registration_errors(run, videos, frames=3)
+    assert err["a"] == 0.0 and err["b"] == pytest.approx(0.0, abs=0.1) and err["c"] == pytest.approx(180.0, abs=0.1)
+    assert set(err) == {"a", "b", "c"}
