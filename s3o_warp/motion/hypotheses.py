@@ -35,6 +35,11 @@ ORIENTATIONS = 8
 object, unknown cameras): evenly spaced, 0 included (360 / 8 = 45 degrees apart)."""
 ORIENTATION_STEPS = 30
 """Steps (root and camera free, on the video's anchor window) each orientation is fitted for before it is scored."""
+ORIENTATION_TILTS = (-30.0, -15.0, 15.0, 30.0)
+"""After the orientations, the best one is tried again with the turn's axis tipped by each of these (degrees) about
+the reference camera's horizontal axis: the body's vertical is the reference camera's vertical tipped by the
+camera's elevation, so two videos filmed from a little above on opposite sides are a half turn about that tipped
+axis (about the camera's own vertical, the second body comes out rolled by twice the elevation)."""
 MIN_ORIENTATION_IOU = 0.3
 """A video whose best orientation's mask IoU on its anchor window stays under this fits no orientation of the body
 (another object, or masks of something else): refused with one line naming it."""
@@ -56,7 +61,9 @@ class Search:
         steps_done: steps already taken by the hypothesis in training.
         opt_state: its optimiser's state, when the search was read from a checkpoint.
         video: the video searched (several videos), -1 for the whole sequence (one video).
-        yaws: the video's orientations about the vertical to try first (degrees; empty: the reference video).
+        yaws: the video's orientations about the vertical to try first (degrees; empty: the reference video), then
+            the best of them again for each of :data:`ORIENTATION_TILTS`.
+        tilts: each orientation's tip of the turn's axis (degrees; 0 for the first :data:`ORIENTATIONS`).
         yaw_scores, yaw_ious: each finished orientation's score (silhouette and flow terms on the anchor window) and
             mask IoU there.
         chosen: each video already searched: its orientation, turn rate and scores.
@@ -73,6 +80,7 @@ class Search:
     opt_state: dict | None = None
     video: int = -1
     yaws: list[float] = field(default_factory=list)
+    tilts: list[float] = field(default_factory=list)
     yaw_scores: list[float] = field(default_factory=list)
     yaw_ious: list[float] = field(default_factory=list)
     chosen: list[dict] = field(default_factory=list)
@@ -83,11 +91,13 @@ class Search:
 
     @classmethod
     def from_state(cls, state: dict, opt_state: dict) -> Search:
+        state = {"tilts": [0.0] * len(state.get("yaws", [])), **state}  # a checkpoint written before tilts
         return cls(**state, opt_state=opt_state)
 
     def where(self) -> str:
         if len(self.yaw_scores) < len(self.yaws):
-            return f"video {self.video}, orientation {len(self.yaw_scores) + 1} of {len(self.yaws)}, step {self.steps_done}"
+            return (f"video {self.video}, orientation {len(self.yaw_scores) + 1} of {len(self.yaws)}, step "
+                    f"{self.steps_done}")
         if len(self.scores) < len(self.rates):
             return f"turn rate {len(self.scores) + 1} of {len(self.rates)}, step {self.steps_done}"
         return f"finalist {len(self.refined) + 1} of {len(self.top or [])}, step {self.steps_done}"
@@ -124,7 +134,7 @@ def _new_search(fit, video: int, chosen: list[dict]) -> Search:
         [float(r) for r in rates]
     yaws = [] if video < 0 or video == fit.reference_video else [360.0 * k / ORIENTATIONS for k in range(ORIENTATIONS)]
     return Search(rates=rates, base=copy.deepcopy(m.state_dict()), gen_state=fit.gen.get_state(), video=video,
-                  yaws=yaws, chosen=list(chosen))
+                  yaws=yaws, tilts=[0.0] * len(yaws), chosen=list(chosen))
 
 
 def select_hypotheses(fit, search: Search | None = None) -> list[dict]:
@@ -171,11 +181,13 @@ def select_hypothesis(fit, search: Search | None = None) -> float:
     first = min(max(c - n // 2, a), b - n)
     anchor_window = torch.arange(first, first + n, device=fit.device)
 
-    def apply(rate: float, yaw: float = 0.0) -> None:
+    def apply(rate: float, yaw: float = 0.0, tilt: float = 0.0) -> None:
         m.load_state_dict(search.base)
         ang = torch.deg2rad(torch.tensor(yaw + rate * (np.arange(a, b) - c), dtype=torch.float32, device=fit.device))
         aa = torch.zeros(b - a, 3, device=fit.device)
-        aa[:, 1] = ang
+        aa[:, 1] = ang * float(np.cos(np.radians(tilt)))  # about the vertical, tipped about the camera's horizontal
+        if tilt:
+            aa[:, 2] = ang * float(np.sin(np.radians(tilt)))
         with torch.no_grad():
             Ry = axis_angle_to_matrix(aa)
             m.root_R0[a:b].copy_(search.base["root_R0"][a:b] @ Ry)
@@ -185,8 +197,12 @@ def select_hypothesis(fit, search: Search | None = None) -> float:
                 R = axis_angle_to_matrix(search.base["root_aa"][a:b]) @ search.base["root_R0"][a:b]
                 m.root_t[a:b] = search.base["root_t"][a:b] + R @ p - (R @ Ry) @ p
 
-    def best_yaw() -> float:
-        return search.yaws[int(np.argmin(search.yaw_scores))] if search.yaws else 0.0
+    def best_yaw() -> tuple[float, float]:
+        """The best orientation so far: (yaw, tilt) in degrees."""
+        if not search.yaws:
+            return 0.0, 0.0
+        k = int(np.argmin(search.yaw_scores))
+        return search.yaws[k], search.tilts[k]
 
     def optimiser(state: dict | None = None) -> torch.optim.Optimizer:
         """Only the root and the camera are free: with the bones free too, they absorb a wrong turn."""
@@ -237,13 +253,13 @@ def select_hypothesis(fit, search: Search | None = None) -> float:
             fit.stop_point(search)
             raise
 
-    def start(rate: float | None, snap=None, yaw: float = 0.0) -> None:
+    def start(rate: float | None, snap=None, yaw: float = 0.0, tilt: float = 0.0) -> None:
         """The hypothesis to train: a fresh one (``rate``, or a first-round ``snap`` going on), or the one the
         checkpoint holds (the fit's model and generator are already its own)."""
         if search.steps_done:
             fit.opt = optimiser(search.opt_state)
         elif snap is None:
-            apply(rate, yaw)
+            apply(rate, yaw, tilt)
             fit.gen.set_state(search.gen_state)
             fit.opt = optimiser()
         else:
@@ -253,12 +269,19 @@ def select_hypothesis(fit, search: Search | None = None) -> float:
         search.opt_state = None
 
     if search.yaws:
-        with tqdm(total=len(search.yaws) * ORIENTATION_STEPS, initial=len(search.yaw_scores) * ORIENTATION_STEPS
-                  + search.steps_done, desc=f"orient {name}", unit="step", dynamic_ncols=True, leave=True) as bar:
-            while len(search.yaw_scores) < len(search.yaws):
-                yaw = search.yaws[len(search.yaw_scores)]
-                bar.set_postfix(yaw=f"{yaw:.0f}")
-                start(0.0, yaw=yaw)
+        with tqdm(total=(ORIENTATIONS + len(ORIENTATION_TILTS)) * ORIENTATION_STEPS,
+                  initial=len(search.yaw_scores) * ORIENTATION_STEPS + search.steps_done, desc=f"orient {name}",
+                  unit="step", dynamic_ncols=True, leave=True) as bar:
+            while True:
+                if len(search.yaw_scores) == ORIENTATIONS and len(search.yaws) == ORIENTATIONS:
+                    grid_yaw = best_yaw()[0]  # the grid done: its best again, the turn's axis tipped
+                    search.yaws += [grid_yaw] * len(ORIENTATION_TILTS)
+                    search.tilts += list(ORIENTATION_TILTS)
+                if len(search.yaw_scores) >= len(search.yaws):
+                    break
+                yaw, tilt = search.yaws[len(search.yaw_scores)], search.tilts[len(search.yaw_scores)]
+                bar.set_postfix(yaw=f"{yaw:.0f}", tilt=f"{tilt:.0f}")
+                start(0.0, yaw=yaw, tilt=tilt)
                 ok = steps_to(ORIENTATION_STEPS, bar, anchor_window)
                 with torch.no_grad():
                     terms, sil, mask = fit.motion_losses(anchor_window)
@@ -284,7 +307,8 @@ def select_hypothesis(fit, search: Search | None = None) -> float:
             while len(search.scores) < len(search.rates):
                 rate = search.rates[len(search.scores)]
                 bar.set_postfix(rate=f"{rate:+.2f}")
-                start(rate, yaw=best_yaw())
+                yaw, tilt = best_yaw()
+                start(rate, yaw=yaw, tilt=tilt)
                 score = train(mc.hypothesis_steps, bar)
                 search.scores.append(score)
                 search.snaps.append((copy.deepcopy(m.state_dict()), copy.deepcopy(fit.opt.state_dict()),
@@ -310,8 +334,8 @@ def select_hypothesis(fit, search: Search | None = None) -> float:
             best = v_minimum(list(refined), list(refined.values()), best)
     else:
         scores, refined, best = [float("nan")], {}, search.rates[0]
-    yaw = best_yaw()
-    apply(best, yaw)
+    yaw, tilt = best_yaw()
+    apply(best, yaw, tilt)
     m.visited.zero_()
     fit.gen.set_state(search.gen_state)
     fit.opt = fit.make_optimizer()
@@ -319,20 +343,23 @@ def select_hypothesis(fit, search: Search | None = None) -> float:
            "rates_deg_per_frame": search.rates, "scores": scores,
            "refined": {f"{r:g}": v_ for r, v_ in refined.items()}, "chosen": best}
     if v >= 0:
-        order = np.argsort(search.yaw_scores) if search.yaws else []
-        choice = {"video": v, "name": name, "anchor_frame": c - a, "yaw_deg": yaw, "turn_rate": best,
-                  "yaws_deg": search.yaws, "yaw_scores": search.yaw_scores, "yaw_ious": search.yaw_ious}
-        if len(order) > 1:
-            s0, s1 = search.yaw_scores[order[0]], search.yaw_scores[order[1]]
-            choice.update(runner_up_yaw_deg=search.yaws[order[1]], margin=float((s1 - s0) / max(abs(s1), 1e-12)),
-                          iou=search.yaw_ious[order[0]])
+        choice = {"video": v, "name": name, "anchor_frame": c - a, "yaw_deg": yaw, "tilt_deg": tilt, "turn_rate": best,
+                  "yaws_deg": search.yaws, "tilts_deg": search.tilts, "yaw_scores": search.yaw_scores,
+                  "yaw_ious": search.yaw_ious}
+        others = [i for i in range(len(search.yaws)) if search.yaws[i] != yaw]  # the runner-up: another yaw
+        if search.yaws and others:
+            k = int(np.argmin(search.yaw_scores))
+            r = min(others, key=lambda i: search.yaw_scores[i])
+            s0, s1 = search.yaw_scores[k], search.yaw_scores[r]
+            choice.update(runner_up_yaw_deg=search.yaws[r], margin=float((s1 - s0) / max(abs(s1), 1e-12)),
+                          iou=search.yaw_ious[k])
         search.chosen.append(choice)
         rec.update(video=name, orientation=choice)
         if search.yaws:
-            log.info("video '%s': orientation %.0f degrees about the vertical from the first video's (score %.4f, "
-                     "%.0f %% below the next, %.0f degrees; mask IoU %.3f on its frames %d-%d)", name, yaw,
-                     search.yaw_scores[order[0]], 100 * choice["margin"], choice["runner_up_yaw_deg"], choice["iou"],
-                     int(anchor_window[0]) - a, int(anchor_window[-1]) - a)
+            log.info("video '%s': orientation %.0f degrees about the vertical (tipped %.0f degrees) from the first "
+                     "video's (score %.4f, %.0f %% below the next, %.0f degrees; mask IoU %.3f on its frames %d-%d)",
+                     name, yaw, tilt, min(search.yaw_scores), 100 * choice["margin"], choice["runner_up_yaw_deg"],
+                     choice["iou"], int(anchor_window[0]) - a, int(anchor_window[-1]) - a)
     fit.record(rec)
     log.info("camera hypotheses%s: turn rate %.2f deg/frame chosen (scores %s%s)", f" of '{name}'" if name else "",
              best, ", ".join(f"{x:.4f}" for x in scores),

@@ -16,6 +16,7 @@ from s3o_warp.data.store import prepare_data
 from s3o_warp.errors import InputError
 from s3o_warp.fit import Fitter, fit
 from s3o_warp.motion import losses as L
+from s3o_warp.motion.hypotheses import ORIENTATION_TILTS
 from s3o_warp.motion.windows import FrameWindows, seed_unvisited
 from s3o_warp.synth import make_sequence
 
@@ -145,7 +146,9 @@ def test_a_fit_of_two_videos_writes_each_videos_run_and_one_glb(two_videos, tmp_
     reg = metrics["registration"]
     assert reg["right"]["yaw_deg"] == 0.0 or reg["left"]["yaw_deg"] == 0.0  # the reference video is not turned
     other = reg["left"] if reg["right"]["yaw_deg"] == 0.0 and not reg["right"]["yaws_deg"] else reg["right"]
-    assert len(other["yaws_deg"]) == 8 and "margin" in other
+    assert len(other["yaws_deg"]) == len(other["tilts_deg"]) == 8 + len(ORIENTATION_TILTS) and "margin" in other
+    assert other["tilts_deg"][8:] == list(ORIENTATION_TILTS) and len(set(other["yaws_deg"][8:])) == 1
+    assert "tilt_deg" in other
     assert {n: metrics["videos"][n]["registration"] for n in reg} == reg  # each video's own metrics say it too
     log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     assert {r["video"] for r in log if r.get("what") == "hypotheses"} == {"right", "left"}  # what a resume reads
