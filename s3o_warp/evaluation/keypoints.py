@@ -21,7 +21,8 @@ _ENDS = {"foot", "feet", "hand", "paw", "hoof", "hooves", "toe", "toes", "wrist"
 _LIMB = {"leg", "arm", "forearm", "shin", "calf"}
 _LEFT = {"l", "left", "fl", "bl"}
 _RIGHT = {"r", "right", "fr", "br"}
-_HEAD = {"nose", "head", "jaw", "chin", "snout", "muzzle"}
+_HEAD = {"nose", "head", "jaw", "chin", "snout", "muzzle", "ear", "neck"}
+"""Name tokens of the front end (the head and what is next to it), for the side seen in an image."""
 _TAIL = {"tail"}
 _BADJA_LEG = re.compile(r"^(upper|lower)_(left|right)_(\d)$")
 """BADJA's leg chains (``upper``: the front legs, ``lower``: the hind legs), joints 0 (shoulder, hip) to 3 (paw)."""

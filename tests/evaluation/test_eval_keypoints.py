@@ -39,6 +39,8 @@ def test_facing_from_depth_and_from_the_image():
                    [[90, 10, 0], [10, 10, 1], [80, 50, 1], [20, 50, 1]]], float)  # the nose hidden
     assert facing_sides(names, kp) == ["right", "left", None, None]
     assert facing_sides(["nose", "tail"], kp[:, :2]) == [None] * 4  # nothing named for a side
+    # the Quaternius models name no nose: their ears and neck are the front end
+    assert facing_sides(["Ear4.L_tip", "Tail1", "FF.L_tip", "FF.R_tip"], kp[:2]) == ["right", "left"]
 
 
 def test_groups_add_up_the_frames_and_keypoints_that_belong():
