@@ -185,19 +185,24 @@ def registration_errors(run: Path, videos: dict[str, Path], frames: int = 8) -> 
 
 def rescore_row(dest: Path, work: Path, case: str, seed: int, preset: str, overrides: list[str],
                 videos: dict[str, Path]) -> dict | None:
-    """The newest row of ``case`` and ``seed`` (same preset and overrides) in ``dest``, its runs scored again with
+    """The newest row of ``case`` and ``seed`` (same preset and overrides) in ``dest`` whose joint fit is the one in
+    ``work`` (the same mask IoU per video as its ``metrics.json``), its runs scored again with
     this commit's metrics (:func:`s3o_warp.evaluation.report.evaluate_run` on each video's run directory and each
     fit alone); its fits' commit and wall times kept, ``rescored_commit`` added. None when there is no such row."""
     from s3o_warp.evaluation.report import evaluate_run
 
+    run = work / "runs" / f"{case}-{seed}"
+    if not (run / "metrics.json").is_file():
+        return None
+    top = json.loads((run / "metrics.json").read_text())
+    ious = {name: (m.get("mask_iou") or {}).get("mean") for name, m in (top.get("videos") or {}).items()}
     rows = json.loads(dest.read_text())["results"] if dest.is_file() else []
     rows = [r for r in rows if (r.get("case"), r.get("seed"), r.get("preset"), r.get("overrides")) ==
-            (case, seed, preset, overrides)]
+            (case, seed, preset, overrides)  # and the row of these runs: its mask IoU is their metrics.json's
+            and {name: v.get("iou") for name, v in r["joint"].items()} == ious]
     if not rows:
         return None
     old = rows[-1]
-    run = work / "runs" / f"{case}-{seed}"
-    top = json.loads((run / "metrics.json").read_text())
     joint = {"videos": {name: evaluate_run(run / "videos" / name, seq, progress=False) for name, seq in videos.items()},
              "registration": top.get("registration") or {}}
     alone = {name: (evaluate_run(work / "runs" / f"{case}-{name}-alone-{seed}", seq, progress=False),

@@ -178,7 +178,9 @@ def test_main_fits_together_then_alone_and_records_the_row(renders, tmp_path, mo
     monkeypatch.setattr(report, "evaluate_run", lambda run, seq, progress: scored.append(Path(run).name)
                         or _metrics(0.95, 90.0, 0.6, 4))
     (out / "runs" / "robot4-0" / "metrics.json").parent.mkdir(parents=True, exist_ok=True)
-    (out / "runs" / "robot4-0" / "metrics.json").write_text(json.dumps({"registration": {"left": {"yaw_deg": 90.0}}}))
+    top = {"videos": {v: {"mask_iou": {"mean": 0.9}} for v in ("right", "front", "left", "back")},
+           "registration": {"left": {"yaw_deg": 90.0}}}
+    (out / "runs" / "robot4-0" / "metrics.json").write_text(json.dumps(top))
     monkeypatch.setattr(bench_multi, "git_commit", lambda: "b" * 40)
     assert bench_multi.main(["--cases", "robot4", "--out-dir", str(out), "--rescore", "--set", "coarse.steps=5"]) == 0
     assert fits == [] and scored == ["right", "front", "left", "back"]
@@ -186,6 +188,11 @@ def test_main_fits_together_then_alone_and_records_the_row(renders, tmp_path, mo
     assert (new["git_commit"], new["rescored_commit"], new["wall_seconds"]) == ("a" * 40, "b" * 40, row["wall_seconds"])
     assert new["mean"]["pck_t"] == 90.0 and new["joint"]["left"]["registration"] == {"yaw_deg": 90.0}
     assert bench_multi.main(["--cases", "robot4", "--out-dir", str(out), "--rescore", "--seeds", "3"]) == 0  # none
+    top["videos"]["left"]["mask_iou"]["mean"] = 0.5  # runs of another fit than the rows': nothing rescored
+    (out / "runs" / "robot4-0" / "metrics.json").write_text(json.dumps(top))
+    scored.clear()
+    assert bench_multi.main(["--cases", "robot4", "--out-dir", str(out), "--rescore", "--set", "coarse.steps=5"]) == 0
+    assert scored == []
 
 
 def test_registration_error_reads_a_wrong_turn_from_the_truth(tmp_path):
