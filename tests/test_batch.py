@@ -229,6 +229,7 @@ def test_manifest_row_of_several_videos(tmp_path, monkeypatch):
                 "seconds": 12.5}
 
     monkeypatch.setattr(batch, "fit", fake_fit)
+    monkeypatch.setattr(batch.torch, "set_num_threads", lambda n: None)  # a worker's; this process keeps its own
     out = batch.fit_one(row, cfg, str(tmp_path / "runs"), "b1", 1)  # the fit is given the list of videos
     assert seen["seq"] == list(row.path) and seen["masks"] == list(row.masks)
     assert (out["status"], out["frames"], out["mask_iou"], out["bones"], out["fit_s"]) == ("finished", 10, 0.8, 5.0,
