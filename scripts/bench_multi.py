@@ -36,10 +36,15 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
+import trimesh
 from bench_fit import DATA, SYNTH, command_line, record
+from scipy.spatial.transform import Rotation
 
 from s3o_warp.config import make_config
+from s3o_warp.evaluation.loaders import load_ground_truth
+from s3o_warp.evaluation.report import evaluate_run
 from s3o_warp.fit import fit, resolve_device
 from s3o_warp.provenance import REPO, cpu_name, git_commit, versions
 from s3o_warp.synth import make_sequence
@@ -153,12 +158,6 @@ def registration_errors(run: Path, videos: dict[str, Path], frames: int = 8) -> 
     orientation in the model's frame that this video implies. The angle between one video's mean and the first's is
     the error: 0 when every video sees the canonical body turned as the truth is, ~180 for a video registered the
     wrong way round. The bodies' own turns in their world (none in the benchmark's clips) count as error."""
-    import numpy as np
-    import trimesh
-    from scipy.spatial.transform import Rotation
-
-    from s3o_warp.evaluation.loaders import load_ground_truth
-
     if not (run / "canonical.ply").is_file():
         return {}
     X = np.asarray(trimesh.load(run / "canonical.ply", process=False).vertices, np.float64)
@@ -189,8 +188,6 @@ def rescore_row(dest: Path, work: Path, case: str, seed: int, preset: str, overr
     ``work`` (the same mask IoU per video as its ``metrics.json``), its runs scored again with
     this commit's metrics (:func:`s3o_warp.evaluation.report.evaluate_run` on each video's run directory and each
     fit alone); its fits' commit and wall times kept, ``rescored_commit`` added. None when there is no such row."""
-    from s3o_warp.evaluation.report import evaluate_run
-
     run = work / "runs" / f"{case}-{seed}"
     if not (run / "metrics.json").is_file():
         return None

@@ -171,11 +171,9 @@ def test_main_fits_together_then_alone_and_records_the_row(renders, tmp_path, mo
     assert "alone" not in row
 
     # --rescore: no fit; the runs scored again, the row's commit and wall time kept
-    import s3o_warp.evaluation.report as report
-
     fits.clear()
     scored = []
-    monkeypatch.setattr(report, "evaluate_run", lambda run, seq, progress: scored.append(Path(run).name)
+    monkeypatch.setattr(bench_multi, "evaluate_run", lambda run, seq, progress: scored.append(Path(run).name)
                         or _metrics(0.95, 90.0, 0.6, 4))
     (out / "runs" / "robot4-0" / "metrics.json").parent.mkdir(parents=True, exist_ok=True)
     top = {"videos": {v: {"mask_iou": {"mean": 0.9}} for v in ("right", "front", "left", "back")},

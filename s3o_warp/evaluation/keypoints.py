@@ -47,8 +47,7 @@ def keypoint_role(name: str) -> KeypointRole:
     m = _BADJA_LEG.match(name)
     if m:  # BADJA: joints 2 and 3 of a leg (wrist or hock, paw) are its end
         return KeypointRole(int(m.group(3)) >= 2, m.group(2))
-    tok = name_tokens(name)
-    words = set(tok)
+    words = set(name_tokens(name))
     end = bool(words & _ENDS) or ("tip" in words and bool(words & _LIMB))  # a lower leg's tip: the hoof
     left, right = bool(words & _LEFT), bool(words & _RIGHT)
     return KeypointRole(end, "left" if left and not right else "right" if right and not left else None)

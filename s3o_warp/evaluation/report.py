@@ -60,20 +60,17 @@ def _pair_frames(pred_names: list[str], gt: GroundTruth, where: Path) -> tuple[n
     return idx, idx
 
 
-def _keypoint_depth(gt: GroundTruth | None, names: list[str], pred_names: list[str], ann: list[int]) -> np.ndarray | None:
+def _keypoint_depth(gt: GroundTruth | None, names: list[str], pred_names: list[str], ann: list[int],
+                    where: Path) -> np.ndarray | None:
     """float (A, P) the true camera-space depth of each keypoint at the annotated frames ``ann`` (indices into the
-    run's ``pred_names``), or None where the ground truth lacks a keypoint or a frame."""
+    run's ``pred_names``, paired with the ground truth's frames by :func:`_pair_frames`), or None where the ground
+    truth lacks a keypoint or a frame."""
     if gt is None or not gt.keypoints or any(n not in gt.keypoints for n in names):
         return None
-    if gt.frame_names is not None:
-        pos = {n: i for i, n in enumerate(gt.frame_names)}
-        if any(pred_names[t] not in pos for t in ann):
-            return None
-        gi = np.array([pos[pred_names[t]] for t in ann])
-    elif gt.verts.shape[0] == len(pred_names):
-        gi = np.asarray(ann)
-    else:
+    pos = dict(zip(*_pair_frames(pred_names, gt, where)))
+    if any(t not in pos for t in ann):
         return None
+    gi = np.array([pos[t] for t in ann])
     return np.stack([gt.keypoints[n][gi, 2] for n in names], axis=1).astype(np.float64)
 
 
@@ -207,7 +204,7 @@ def evaluate_run(run, sequence=None, *, keypoints=None, ground_truth=None, masks
                 "per_keypoint": {n: {"pck": (100.0 * c / t if t else None), "correct": int(c), "total": int(t)}
                                  for n, c, t in zip(kps.names, r["per_keypoint_correct"], r["per_keypoint_total"])},
             }
-            depth = _keypoint_depth(gt, kps.names, pred.frame_names, ann)
+            depth = _keypoint_depth(gt, kps.names, pred.frame_names, ann, pred.source)
             facing = facing_sides(kps.names, kp_arr, depth)
             result["pck_t"]["groups"] = {
                 **pck_groups(kps.names, r["per_frame_keypoint_correct"], r["per_frame_keypoint_total"], facing),

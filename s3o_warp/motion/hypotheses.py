@@ -347,7 +347,7 @@ def select_hypothesis(fit, search: Search | None = None) -> float:
                   "yaws_deg": search.yaws, "tilts_deg": search.tilts, "yaw_scores": search.yaw_scores,
                   "yaw_ious": search.yaw_ious}
         others = [i for i in range(len(search.yaws)) if search.yaws[i] != yaw]  # the runner-up: another yaw
-        if search.yaws and others:
+        if others:
             k = int(np.argmin(search.yaw_scores))
             r = min(others, key=lambda i: search.yaw_scores[i])
             s0, s1 = search.yaw_scores[k], search.yaw_scores[r]
