@@ -23,7 +23,6 @@ import argparse
 import logging
 import math
 import os
-import re
 import sys
 import tempfile
 from pathlib import Path
@@ -38,7 +37,7 @@ from s3o_warp.coarse.model import coarse_model  # noqa: E402
 from s3o_warp.config import make_config  # noqa: E402
 from s3o_warp.data.store import prepare_data  # noqa: E402
 from s3o_warp.evaluation.image import render_frames, surface_under_keypoints  # noqa: E402
-from s3o_warp.evaluation.keypoints import keypoint_roles  # noqa: E402
+from s3o_warp.evaluation.keypoints import counterparts, keypoint_roles  # noqa: E402
 from s3o_warp.evaluation.loaders import load_ground_truth, load_keypoints, load_predictions  # noqa: E402
 from s3o_warp.evaluation.report import _pair_frames, evaluate_run  # noqa: E402
 from s3o_warp.evaluation.shape import frame_similarities, shape_metrics  # noqa: E402
@@ -50,28 +49,6 @@ from s3o_warp.run.outputs import rig_from_model  # noqa: E402
 log = logging.getLogger("bench_legs")
 
 GROUPS = ("ends", "rest", "near", "far", "ends_near", "ends_far")
-SIDES = ((".L", ".R"), ("Left", "Right"), ("_left_", "_right_"), ("left_", "right_"), ("_L", "_R"))
-"""Name fragments of a keypoint's side and its counterpart's (either way round)."""
-
-
-def counterpart(name: str, names: list[str]) -> str | None:
-    """The keypoint of the other side (``FF.L_tip`` -> ``FF.R_tip``; ``b_LeftFoot02_018_tip`` ->
-    ``b_RightFoot02_022_tip``: bone numbers may differ), or None."""
-    def stem(n: str) -> str:
-        return re.sub(r"_\d+(?=_|$)", "", n)
-
-    for a, b in SIDES:
-        for x, y in ((a, b), (b, a)):
-            if x in name:
-                if name.replace(x, y) in names:
-                    return name.replace(x, y)
-                want = stem(name.replace(x, y))
-                hits = [n for n in names if n != name and stem(n) == want]
-                if len(hits) == 1:
-                    return hits[0]
-    return None
-
-
 def keypoint_depths(points: np.ndarray, own: np.ndarray, other: np.ndarray, near: np.ndarray, end: np.ndarray) -> dict:
     """Where the fitted surface under each side keypoint lies in depth, by role: per group (``ends_near``,
     ``ends_far``, ``rest_near``, ``rest_far``) the keypoints counted (``n``), the share whose surface point lies
@@ -116,8 +93,7 @@ def surface_depths(run: Path, seq: Path) -> dict | None:
     gt_of = dict(zip(pi.tolist(), gi.tolist()))
     sim_of = dict(zip(pi.tolist(), sims))
     roles = keypoint_roles(kps.names)
-    pairs = [(p, kps.names.index(c)) for p, c in ((p, counterpart(n, kps.names)) for p, n in enumerate(kps.names))
-             if c is not None]
+    pairs = [(p, q) for p, q in enumerate(counterparts(kps.names)) if q is not None]
     rows = []
     for s, fi, bary in render_frames(pred.verts_cam, pred.faces, pred.K, pred.image_size, 8, "cpu", False, None):
         for k in range(fi.shape[0]):

@@ -57,6 +57,31 @@ def keypoint_roles(names) -> list[KeypointRole]:
     return [keypoint_role(str(n)) for n in names]
 
 
+_MIRROR = {"l": "r", "left": "right", "fl": "fr", "bl": "br"}
+_MIRROR.update({v: k for k, v in list(_MIRROR.items())})
+
+
+def counterparts(names) -> list[int | None]:
+    """For each keypoint, the index of the same keypoint on the other side of the body (``FF.L_tip`` and
+    ``FF.R_tip``, ``upper_left_1`` and ``upper_right_1``, ``paw_fl`` and ``paw_fr``), or None: its words with the side's
+    word mirrored (:func:`name_tokens`); where that names none, the same with the numbers left out, when exactly one
+    keypoint matches (the Fox's ``b_LeftFoot02_018_tip`` and ``b_RightFoot02_022_tip`` differ in a bone number)."""
+    toks = [name_tokens(str(n)) for n in names]
+    out: list[int | None] = []
+    for i, t in enumerate(toks):
+        if not any(w in _MIRROR for w in t):
+            out.append(None)
+            continue
+        want = [_MIRROR.get(w, w) for w in t]
+        hits = [j for j, u in enumerate(toks) if j != i and u == want]
+        if not hits:
+            def bare(ws):
+                return [w for w in ws if not w.isdigit()]
+            hits = [j for j, u in enumerate(toks) if j != i and bare(u) == bare(want)]
+        out.append(hits[0] if len(hits) == 1 else None)
+    return out
+
+
 def facing_sides(names, keypoints: np.ndarray, depth: np.ndarray | None = None) -> list[str | None]:
     """Per annotated frame, the side of the body facing the camera (``"left"``, ``"right"``), or None.
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from s3o_warp.data.keypoints import BADJA_ANNOTATED, BADJA_JOINT_NAMES
-from s3o_warp.evaluation.keypoints import facing_sides, keypoint_role, name_tokens, pck_groups
+from s3o_warp.evaluation.keypoints import counterparts, facing_sides, keypoint_role, name_tokens, pck_groups
 
 
 def test_roles_of_the_models_and_badja_names():
@@ -71,3 +71,15 @@ def test_groups_add_up_the_frames_and_keypoints_that_belong():
     assert g["ends"]["keypoints"] == ["foot_fl", "foot_fr"] and g["frames_with_side"] == 4
     rate = correct.sum(0) / np.maximum(total.sum(0), 1)
     assert g["worst"]["keypoint"] == names[int(np.argmin(np.where(total.sum(0) > 0, rate, np.inf)))]
+
+
+def test_counterparts_mirror_the_side_word():
+    names = ["FF.L_tip", "FF.R_tip", "upper_left_1", "upper_right_1", "upper_left_2", "upper_right_2",
+             "b_LeftFoot02_018_tip", "b_RightFoot02_022_tip", "foot_fl", "foot_fr", "foot_bl", "nose", "Tail7_tip"]
+    c = counterparts(names)
+    by = {n: (names[j] if j is not None else None) for n, j in zip(names, c)}
+    assert by["FF.L_tip"] == "FF.R_tip" and by["FF.R_tip"] == "FF.L_tip"
+    assert by["upper_left_1"] == "upper_right_1" and by["upper_right_2"] == "upper_left_2"
+    assert by["b_LeftFoot02_018_tip"] == "b_RightFoot02_022_tip"  # the bone numbers differ
+    assert by["foot_fl"] == "foot_fr" and by["foot_bl"] is None  # front left to front right, not back right
+    assert by["nose"] is None and by["Tail7_tip"] is None
